@@ -1,0 +1,1 @@
+"""Subcommand modules of the CLI; each has ``register(subparsers)``."""

@@ -1,0 +1,117 @@
+"""Command line: ``smdinspect demo | simulate | acquire | reconstruct | inspect | batch``.
+
+Parses arguments, sets up logging and progress bars, calls the library, and turns
+:class:`~smdinspect.errors.SmdInspectError` into a one-line message and an exit code:
+
+====  ==========================================================
+0     success (all joints pass)
+1     inspection found defects
+2     bad input (arguments, files, board file)
+3     the board could not be located in the measurement
+4     hardware failure (stage, camera)
+130   interrupted (Ctrl-C); work finished so far is kept
+====  ==========================================================
+"""
+
+from __future__ import annotations
+
+import argparse
+import importlib
+import logging
+import sys
+from typing import Callable, Sequence
+
+from . import __version__
+from .errors import SmdInspectError
+
+log = logging.getLogger(__name__)
+
+# One module per subcommand in smdinspect/_cli/, each with register(subparsers),
+# which adds its parser and sets ``func`` to a callable(args) -> int.
+COMMANDS = ("demo", "simulate", "acquire", "reconstruct", "inspect", "batch")
+
+
+def build_parser() -> argparse.ArgumentParser:
+    parser = argparse.ArgumentParser(
+        prog="smdinspect",
+        description="Shape-from-focus 3D inspection of SMD solder joints.",
+    )
+    parser.add_argument("--version", action="version", version=f"smdinspect {__version__}")
+    parser.add_argument("-v", "--verbose", action="count", default=0,
+                        help="more log output; -v also shows tracebacks on errors")
+    parser.add_argument("-q", "--quiet", action="store_true",
+                        help="only warnings and errors; no progress bars")
+    sub = parser.add_subparsers(dest="command", metavar="COMMAND")
+    for name in COMMANDS:
+        try:
+            module = importlib.import_module(f"smdinspect._cli.{name}")
+        except ModuleNotFoundError as exc:
+            if exc.name != f"smdinspect._cli.{name}":
+                raise
+            continue
+        module.register(sub)
+    return parser
+
+
+def progress_callback(args: argparse.Namespace, desc: str, unit: str = "frame") -> "Progress":
+    """A ``progress(done, total)`` callback drawing a tqdm bar on stderr (unless quiet)."""
+    return Progress(desc, unit=unit, disable=bool(getattr(args, "quiet", False)))
+
+
+class Progress:
+    """Adapter from the library's ``progress(done, total)`` callbacks to a tqdm bar."""
+
+    def __init__(self, desc: str, *, unit: str = "frame", disable: bool = False) -> None:
+        self.desc, self.unit, self.disable = desc, unit, disable
+        self.bar = None
+
+    def __call__(self, done: int, total: int) -> None:
+        if self.disable:
+            return
+        if self.bar is None:
+            from tqdm import tqdm
+
+            self.bar = tqdm(total=total, desc=self.desc, unit=self.unit, file=sys.stderr,
+                            leave=False, dynamic_ncols=True, disable=None)
+        self.bar.total = total
+        self.bar.n = done
+        self.bar.refresh()
+        if done >= total:
+            self.close()
+
+    def close(self) -> None:
+        if self.bar is not None:
+            self.bar.close()
+            self.bar = None
+
+
+def main(argv: Sequence[str] | None = None) -> int:
+    parser = build_parser()
+    args = parser.parse_args(argv)
+    level = logging.WARNING if args.quiet else (logging.DEBUG if args.verbose > 1 else logging.INFO)
+    logging.basicConfig(level=level, format="%(levelname)s %(name)s: %(message)s", force=True)
+    for noisy in ("distributed", "asyncio", "matplotlib", "PIL", "trimesh"):
+        logging.getLogger(noisy).setLevel(max(level, logging.WARNING))
+    func: Callable[[argparse.Namespace], int] | None = getattr(args, "func", None)
+    if func is None:
+        parser.print_help()
+        return 2
+    try:
+        return int(func(args))
+    except SmdInspectError as exc:
+        if args.verbose:
+            log.exception("failed")
+        print(f"smdinspect {args.command}: error: {exc}", file=sys.stderr)
+        return exc.exit_code
+    except KeyboardInterrupt:
+        print(f"smdinspect {args.command}: interrupted; finished work was kept", file=sys.stderr)
+        return 130
+    except OSError as exc:
+        if args.verbose:
+            log.exception("failed")
+        print(f"smdinspect {args.command}: error: {exc}", file=sys.stderr)
+        return 2
+
+
+if __name__ == "__main__":  # pragma: no cover
+    sys.exit(main())

@@ -1,0 +1,117 @@
+"""The reconstructed surface: heights, confidence and the all-in-focus image."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from typing import Any
+
+import numpy as np
+
+__all__ = ["Surface", "pixel_to_xy_mm", "xy_mm_to_pixel"]
+
+
+def pixel_to_xy_mm(rows, cols, *, shape, pixel_size_mm):
+    """Image (row, col) → world (x_mm, y_mm).
+
+    World frame: x to the right, y up the image, z (height) towards the camera, so the
+    frame is right-handed and a cloud seen from +z looks like the image.
+    ``x_mm = col * pixel_size_mm``, ``y_mm = (H - 1 - row) * pixel_size_mm``.
+    """
+    h = shape[0]
+    p = 1.0 if pixel_size_mm is None else float(pixel_size_mm)
+    return np.asarray(cols, dtype=np.float64) * p, (h - 1 - np.asarray(rows, dtype=np.float64)) * p
+
+
+def xy_mm_to_pixel(x_mm, y_mm, *, shape, pixel_size_mm):
+    """World (x_mm, y_mm) → fractional image (row, col); inverse of :func:`pixel_to_xy_mm`."""
+    h = shape[0]
+    p = 1.0 if pixel_size_mm is None else float(pixel_size_mm)
+    return h - 1 - np.asarray(y_mm, dtype=np.float64) / p, np.asarray(x_mm, dtype=np.float64) / p
+
+
+@dataclass(frozen=True, eq=False)
+class Surface:
+    """Result of :func:`smdinspect.sff.reconstruct`; every array is ``(H, W)``.
+
+    Attributes
+    ----------
+    height_mm : (H, W) float32
+        Height of every pixel above the board (base) plane, in the stack's z frame.
+        Defined everywhere; unreliable pixels keep their best guess (see ``reliable``).
+    confidence : (H, W) float32
+        In [0, 1]; 1 is a strong, narrow, well-fitted focus peak.
+    reliable : (H, W) bool
+        ``confidence >= threshold`` and the peak was interior and not inverted.
+    f_peak : (H, W) float32
+        Fitted peak focus value F_peak.
+    sigma_mm : (H, W) float32
+        Fitted width σ_F of the focus curve in mm (NaN where the fit is inverted).
+    reliability_db : (H, W) float32
+        Pertuz's reliability R in dB (R < 20 dB: unreliable).
+    aif : (H, W) or (H, W, 3), dtype of the frames
+        All-in-focus image (RGB for colour stacks).
+    pixel_size_mm : float or None
+        Object-side pixel size; ``None`` when unknown (x, y then in pixels).
+    z_mm : (n_frames,) float64
+        Focused-plane heights of the frames used.
+    meta : dict
+        Settings and timings, written to ``summary.json``.
+    """
+
+    height_mm: np.ndarray
+    confidence: np.ndarray
+    reliable: np.ndarray
+    f_peak: np.ndarray
+    sigma_mm: np.ndarray
+    reliability_db: np.ndarray
+    aif: np.ndarray
+    pixel_size_mm: float | None
+    z_mm: np.ndarray
+    meta: dict[str, Any] = field(default_factory=dict)
+
+    @property
+    def shape(self) -> tuple[int, int]:
+        return self.height_mm.shape  # type: ignore[return-value]
+
+    @property
+    def coverage(self) -> float:
+        """Fraction of pixels that are reliable."""
+        return float(np.mean(self.reliable))
+
+    def xy_mm(self) -> tuple[np.ndarray, np.ndarray]:
+        """``(H, W)`` float64 grids of world x_mm and y_mm for every pixel."""
+        rows, cols = np.indices(self.shape)
+        return pixel_to_xy_mm(rows, cols, shape=self.shape, pixel_size_mm=self.pixel_size_mm)
+
+    def points(self, *, keep_unreliable: bool = False):
+        """World points of the surface.
+
+        Returns
+        -------
+        xyz : (N, 3) float64
+            x_mm, y_mm, z_mm (height).
+        rgb : (N, 3) float32
+            Colour from the all-in-focus image in [0, 1].
+        confidence : (N,) float32
+        index : (N, 2) int64
+            (row, col) of each point.
+        """
+        mask = np.ones(self.shape, bool) if keep_unreliable else self.reliable
+        rows, cols = np.nonzero(mask)
+        x, y = pixel_to_xy_mm(rows, cols, shape=self.shape, pixel_size_mm=self.pixel_size_mm)
+        xyz = np.column_stack([x, y, self.height_mm[rows, cols].astype(np.float64)])
+        rgb = _unit_rgb(self.aif)[rows, cols]
+        return xyz, rgb, self.confidence[rows, cols], np.column_stack([rows, cols])
+
+
+def _unit_rgb(image: np.ndarray) -> np.ndarray:
+    img = np.asarray(image)
+    if img.dtype == np.uint8:
+        img = img.astype(np.float32) / 255.0
+    elif img.dtype == np.uint16:
+        img = img.astype(np.float32) / 65535.0
+    else:
+        img = np.clip(img.astype(np.float32), 0.0, 1.0)
+    if img.ndim == 2:
+        img = np.repeat(img[:, :, None], 3, axis=2)
+    return img
