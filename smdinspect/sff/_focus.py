@@ -736,12 +736,15 @@ def _as_float32(frame) -> np.ndarray:
         raise InputError(f"frame dtype must be uint8, uint16, float32 or float64; got {a.dtype}")
     if a.size == 0:
         raise InputError(f"frame must not be empty; got shape {a.shape}")
-    if a.dtype.kind == "f" and not np.isfinite(a).all():
-        raise InputError("frame holds NaN or infinite values; focus measures need finite grey "
-                         "levels")
     if a.dtype == np.float32:
-        return np.ascontiguousarray(a)
-    return a.astype(np.float32, order="C")
+        g = np.ascontiguousarray(a)
+    else:
+        with np.errstate(over="ignore"):
+            g = a.astype(np.float32, order="C")
+    if a.dtype.kind == "f" and not np.isfinite(g).all():
+        raise InputError("frame holds NaN or infinite values (or values beyond the float32 "
+                         "range); focus measures need finite grey levels")
+    return g
 
 
 # --------------------------------------------------------------------------- public

@@ -1,0 +1,79 @@
+"""``smdinspect reconstruct``: a focal stack → height map, confidence, cloud, mesh."""
+
+from __future__ import annotations
+
+import argparse
+import logging
+import shutil
+import tempfile
+from pathlib import Path
+
+log = logging.getLogger(__name__)
+
+
+def add_stack_arguments(p: argparse.ArgumentParser) -> None:
+    """Stack input and focus options shared by ``reconstruct`` and ``inspect``."""
+    from ..sff import OPERATORS
+
+    p.add_argument("stack", nargs="+", metavar="STACK",
+                   help="a stack directory (with stack.json) or image files in focus order")
+    p.add_argument("--step-mm", type=float, default=None,
+                   help="focus step between listed images (mm); needed for image lists")
+    p.add_argument("--pixel-size-mm", type=float, default=None,
+                   help="object-side pixel size (mm); overrides stack.json")
+    p.add_argument("--operator", default="sml", choices=OPERATORS, metavar="OP",
+                   help="focus measure (default sml; one of: %(choices)s)")
+    p.add_argument("--window-px", type=int, default=9, help="focus window side, odd (default 9)")
+    p.add_argument("--fit", default="gauss3", choices=["gauss3", "lsq", "argmax"],
+                   help="peak model (default gauss3: Nayar's 3-point Gaussian)")
+    p.add_argument("--fit-half-width", type=int, default=3,
+                   help="frames kept each side of the peak for R and lsq (default 3)")
+    p.add_argument("--min-confidence", type=float, default=0.5,
+                   help="pixels below this confidence are unreliable (default 0.5)")
+    p.add_argument("--align", action="store_true",
+                   help="register frames first (ordinary, non-telecentric lenses)")
+    p.add_argument("--workers", type=int, default=2, help="decode/focus threads (default 2)")
+    p.add_argument("--keep-unreliable", action="store_true",
+                   help="keep unreliable points in cloud.ply and the mesh")
+
+
+def focus_config_from(args: argparse.Namespace):
+    from ..sff import FocusConfig
+
+    return FocusConfig(operator=args.operator, window_px=args.window_px, fit=args.fit,
+                       fit_half_width=args.fit_half_width, min_confidence=args.min_confidence,
+                       align=args.align, workers=args.workers)
+
+
+def register(sub: argparse._SubParsersAction) -> None:
+    p = sub.add_parser("reconstruct", help="focal stack → height map, confidence, cloud, mesh",
+                       description="Measure every pixel's height by shape from focus.")
+    add_stack_arguments(p)
+    p.add_argument("--out", required=True, type=Path, help="output directory")
+    p.set_defaults(func=run)
+
+
+def run(args: argparse.Namespace) -> int:
+    from ..cli import progress_callback
+    from ..sff import reconstruct, write_reconstruction
+    from ..stack import open_stack
+
+    config = focus_config_from(args)
+    stack = open_stack(args.stack, step_mm=args.step_mm, pixel_size_mm=args.pixel_size_mm)
+    if stack.pixel_size_mm is None:
+        log.warning("pixel size unknown (give --pixel-size-mm): x and y are written in pixels")
+    surface = reconstruct(stack, config, progress=progress_callback(args, "focus"))
+    # Write into a sibling temporary folder, then move the files in: an error while
+    # writing leaves OUT_DIR as it was.
+    args.out.mkdir(parents=True, exist_ok=True)
+    with tempfile.TemporaryDirectory(dir=args.out, prefix=".partial-") as tmp:
+        write_reconstruction(surface, tmp, keep_unreliable=args.keep_unreliable)
+        for f in Path(tmp).iterdir():
+            shutil.move(str(f), args.out / f.name)
+    h = surface.height_mm[surface.reliable]
+    rng = f"{h.min():.3f} .. {h.max():.3f} mm" if h.size else "n/a"
+    print(f"reconstructed {len(stack)} frames, {surface.shape[1]}x{surface.shape[0]} px: "
+          f"coverage {100 * surface.coverage:.1f}%, heights {rng}, "
+          f"{surface.meta['mpixel_per_s']:.0f} Mpixel/s")
+    print(f"outputs in {args.out}/ (open view3d.png first)")
+    return 0

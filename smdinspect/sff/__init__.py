@@ -1,0 +1,45 @@
+"""Shape from focus: focus measures, peak fit, confidence, alignment, surfaces.
+
+``import smdinspect.sff`` does not import Open3D or trimesh; the cloud and mesh writers
+load them when called.
+"""
+
+from ._align import FrameAligner
+from ._config import FitMethod, FocusConfig
+from ._confidence import confidence_map
+from ._depth import PeakFit, PeakTracker, fit_peaks
+from ._export import (
+    height_field_mesh,
+    render_height_png,
+    render_view3d_png,
+    surface_point_cloud,
+    write_point_cloud,
+    write_reconstruction,
+)
+from ._focus import OPERATORS, FocusOperator, focus_measure
+from ._reconstruct import reconstruct, to_gray
+from ._surface import Surface, pixel_to_xy_mm, xy_mm_to_pixel
+
+__all__ = [
+    "OPERATORS",
+    "FitMethod",
+    "FocusConfig",
+    "FocusOperator",
+    "FrameAligner",
+    "PeakFit",
+    "PeakTracker",
+    "Surface",
+    "confidence_map",
+    "fit_peaks",
+    "focus_measure",
+    "height_field_mesh",
+    "pixel_to_xy_mm",
+    "reconstruct",
+    "render_height_png",
+    "render_view3d_png",
+    "surface_point_cloud",
+    "to_gray",
+    "write_point_cloud",
+    "write_reconstruction",
+    "xy_mm_to_pixel",
+]

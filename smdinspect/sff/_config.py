@@ -1,0 +1,89 @@
+"""Configuration of the shape-from-focus reconstruction."""
+
+from __future__ import annotations
+
+import math
+from dataclasses import asdict, dataclass
+from enum import Enum
+
+from ..errors import InputError
+
+__all__ = ["FitMethod", "FocusConfig"]
+
+
+class FitMethod(str, Enum):
+    """How the focus curve around its peak is modelled."""
+
+    #: Nayar's 3-point Gaussian interpolation through the peak and its two neighbours.
+    GAUSS3 = "gauss3"
+    #: Weighted least-squares Gaussian (parabola in log F) over ±``fit_half_width`` frames.
+    LSQ = "lsq"
+    #: The frame of maximum focus only (no interpolation); for comparison.
+    ARGMAX = "argmax"
+
+
+@dataclass(frozen=True)
+class FocusConfig:
+    """Settings of :func:`smdinspect.sff.reconstruct`.
+
+    Parameters
+    ----------
+    operator : str
+        Focus measure (see ``smdinspect.sff.OPERATORS``); ``"sml"`` (Nayar's sum of
+        modified Laplacian) by default.
+    window_px : int
+        Odd side of the window U the focus measure is summed over.
+    threshold : float
+        Nayar's ML threshold (``sml`` only): ML values below it count as 0.
+    fit : FitMethod or str
+        ``"gauss3"`` (default), ``"lsq"`` or ``"argmax"``.
+    fit_half_width : int
+        k: the focus curve is kept over ±k frames around its peak; the reliability R and
+        the ``lsq`` fit use these 2k+1 samples. Memory holds 2k+1 focus frames at most.
+    min_confidence : float
+        Pixels with confidence below this are unreliable (default 0.5; see
+        :func:`smdinspect.sff.confidence_map`).
+    align : bool
+        Register every frame to the middle frame (scale, rotation, translation) before
+        measuring focus; needed for ordinary (non-telecentric) lenses.
+    workers : int
+        Threads that decode frames and compute focus measures (≥ 1).
+    """
+
+    operator: str = "sml"
+    window_px: int = 9
+    threshold: float = 0.0
+    fit: FitMethod = FitMethod.GAUSS3
+    fit_half_width: int = 3
+    min_confidence: float = 0.5
+    align: bool = False
+    workers: int = 2
+
+    def __post_init__(self) -> None:
+        try:
+            object.__setattr__(self, "fit", FitMethod(self.fit))
+        except ValueError:
+            choices = ", ".join(m.value for m in FitMethod)
+            raise InputError(f"fit must be one of {choices}; got {self.fit!r}") from None
+        from ._focus import OPERATORS
+
+        if self.operator not in OPERATORS:
+            raise InputError(
+                f"unknown focus operator {self.operator!r}; choose one of {', '.join(OPERATORS)}"
+            )
+        if not isinstance(self.window_px, int) or self.window_px < 1 or self.window_px % 2 == 0:
+            raise InputError(f"window_px must be an odd integer >= 1; got {self.window_px!r}")
+        if not (isinstance(self.threshold, (int, float)) and math.isfinite(self.threshold)
+                and self.threshold >= 0):
+            raise InputError(f"threshold must be a finite number >= 0; got {self.threshold!r}")
+        if not isinstance(self.fit_half_width, int) or not 1 <= self.fit_half_width <= 10:
+            raise InputError(f"fit_half_width must be an integer in 1..10; got {self.fit_half_width!r}")
+        if not (0.0 <= self.min_confidence <= 1.0):
+            raise InputError(f"min_confidence must be in [0, 1]; got {self.min_confidence!r}")
+        if not isinstance(self.workers, int) or self.workers < 1:
+            raise InputError(f"workers must be an integer >= 1; got {self.workers!r}")
+
+    def to_dict(self) -> dict:
+        d = asdict(self)
+        d["fit"] = self.fit.value
+        return d

@@ -1,0 +1,230 @@
+"""Per-pixel focus-peak tracking in one pass, and the Gaussian fit of the peak.
+
+Memory does not grow with the number of frames: the tracker keeps the running best
+focus value and frame of every pixel, the last 2k+1 focus frames (a ring of
+references), the focus curve over ±k frames around each pixel's current best (copied
+out of the ring once the k frames after the best have been seen), and the strongest
+focus value seen *away* from the peak (more than k frames from it), which reveals a
+second peak (e.g. a defocused component edge bleeding over the board).
+
+The focus curve around the peak is modelled as F(z) = F_peak·exp(−(z − z̄)²/(2σ_F²)),
+i.e. a parabola in ln F. ``gauss3`` passes it through the peak and its two neighbours
+(Nayar's 3-point Gaussian interpolation, generalised to uneven z spacing); ``lsq`` fits
+it to the 2k+1 samples by least squares weighted by F² (so noisy low values count little).
+Pertuz's reliability R = 20·log10(F_peak / mean|F − model|) over the 2k+1 samples (dB).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from ._config import FitMethod
+
+__all__ = ["PeakFit", "PeakTracker", "fit_peaks"]
+
+_TINY = np.float32(1e-12)
+
+
+class PeakTracker:
+    """Streaming state of the per-pixel focus curves.
+
+    Feed ``update(n, focus)`` once per frame in ascending frame order, then call
+    :meth:`finish` once.
+
+    Parameters
+    ----------
+    shape : (H, W)
+    n_frames : int
+    half_width : int
+        k; the curve is kept over ±k frames around the peak.
+    """
+
+    def __init__(self, shape: tuple[int, int], n_frames: int, *, half_width: int) -> None:
+        self.shape = shape
+        self.n_frames = n_frames
+        self.k = k = half_width
+        self.best = np.full(shape, -1.0, np.float32)
+        self.best_idx = np.zeros(shape, np.int16)
+        # strongest focus more than k frames after the current best ...
+        self.after = np.zeros(shape, np.float32)
+        # ... and more than k frames before it (captured when the best settles)
+        self.before = np.zeros(shape, np.float32)
+        # max of F over frames <= n - 2k - 1 (the frames that have left the ring)
+        self.lagmax = np.zeros(shape, np.float32)
+        # window[j] holds F at frame best_idx - k + j (NaN where outside the stack)
+        self.window = np.full((2 * k + 1, *shape), np.nan, np.float32)
+        self.ring: list[np.ndarray | None] = [None] * (2 * k + 1)
+        self._better = np.empty(shape, bool)
+        self._far = np.empty(shape, bool)
+
+    def update(self, n: int, focus: np.ndarray) -> np.ndarray:
+        """Take frame ``n``'s focus measure; return the (H, W) bool mask of new bests.
+
+        The returned mask is reused by the next call: copy it to keep it.
+        """
+        k, size = self.k, 2 * self.k + 1
+        better = np.greater(focus, self.best, out=self._better)
+        np.copyto(self.best, focus, where=better)
+        np.copyto(self.best_idx, np.int16(n), where=better)
+        far = np.less(self.best_idx, n - k, out=self._far)
+        np.maximum(self.after, focus, out=self.after, where=far)
+        np.copyto(self.after, 0.0, where=better)
+        leaving = self.ring[n % size]  # frame n - 2k - 1
+        if leaving is not None:
+            np.maximum(self.lagmax, leaving, out=self.lagmax)
+        self.ring[n % size] = focus  # references, no copies
+        # pixels whose best is exactly k frames old now have their full window in the ring
+        self._settle(n - k, upto=n)
+        return better
+
+    def _settle(self, m: int, *, upto: int) -> None:
+        """Copy the ±k window for pixels whose best frame is ``m`` (frames ≤ ``upto`` seen)."""
+        if m < 0:
+            return
+        idx = np.flatnonzero(self.best_idx == m)
+        if idx.size == 0:
+            return
+        k, size = self.k, 2 * self.k + 1
+        before = self.lagmax.reshape(-1)[idx]
+        # frames between the ring's oldest and m - k - 1 (only at the end of the stack)
+        for frame in range(max(0, upto - 2 * k), m - k):
+            before = np.maximum(before, self.ring[frame % size].reshape(-1)[idx])
+        self.before.reshape(-1)[idx] = before
+        for j in range(size):
+            frame = m - k + j
+            dst = self.window[j].reshape(-1)
+            if 0 <= frame <= upto:
+                dst[idx] = self.ring[frame % size].reshape(-1)[idx]
+            else:
+                dst[idx] = np.nan
+
+    def finish(self) -> None:
+        """Settle the pixels whose best lies in the last k frames."""
+        last = self.n_frames - 1
+        for m in range(max(0, last - self.k + 1), last + 1):
+            self._settle(m, upto=last)
+
+    @property
+    def alternative(self) -> np.ndarray:
+        """(H, W) float32: strongest focus more than k frames away from the peak."""
+        return np.maximum(self.before, self.after)
+
+
+@dataclass(frozen=True, eq=False)
+class PeakFit:
+    """Per-pixel result of the peak fit; all arrays ``(H, W)``."""
+
+    height_mm: np.ndarray  # float32, interpolated peak position
+    coarse_mm: np.ndarray  # float32, z of the frame of maximum focus
+    f_peak: np.ndarray  # float32
+    sigma_mm: np.ndarray  # float32, NaN where the fit is inverted
+    reliability_db: np.ndarray  # float32
+    ambiguity: np.ndarray  # float32 in [0, 1]: excess focus away from the peak / peak
+    prominence: np.ndarray  # float32 in [0, 1]: 1 - (lowest focus within ±k frames) / peak
+    interior: np.ndarray  # bool: peak not on the first/last frame and fit not inverted
+    best_idx: np.ndarray  # int16
+
+
+def fit_peaks(tracker: PeakTracker, z_mm: np.ndarray, *, method: FitMethod) -> PeakFit:
+    """Fit the Gaussian focus-curve model to the tracked windows.
+
+    Parameters
+    ----------
+    tracker : PeakTracker
+        After :meth:`PeakTracker.finish`.
+    z_mm : (n_frames,) float64
+        Ascending focused-plane heights of the frames.
+    method : FitMethod
+    """
+    z_mm = np.asarray(z_mm, dtype=np.float64)
+    k = tracker.k
+    n = len(z_mm)
+    kb = tracker.best_idx.astype(np.int64)
+    # z offsets of the window samples relative to the best frame, per pixel: (2k+1, H, W)
+    z_pad = np.concatenate([np.full(k, np.nan), z_mm, np.full(k, np.nan)])
+    z0 = z_mm[kb]
+    u = np.stack([(z_pad[kb + j] - z0) for j in range(2 * k + 1)]).astype(np.float32)
+    w = tracker.window
+    f0 = w[k]
+    fm, fp = w[k - 1], w[k + 1]
+    on_edge = (kb == 0) | (kb == n - 1) | ~np.isfinite(fm) | ~np.isfinite(fp)
+
+    with np.errstate(divide="ignore", invalid="ignore", over="ignore"):
+        if method == FitMethod.LSQ:
+            c, beta, l0 = _lsq_log_parabola(u, w)
+        else:
+            lm, l0, lp = (np.log(np.maximum(x, _TINY)) for x in (fm, f0, fp))
+            um, up = u[k - 1], u[k + 1]
+            c = ((lp - l0) / up - (l0 - lm) / (-um)) / (up - um)
+            beta = (l0 - lm) / (-um) - c * um
+        inverted = ~(c < 0)
+        shift = -beta / (2 * c)
+        sigma2 = -1.0 / (2 * c)
+        log_peak = l0 - beta * beta / (4 * c)
+        # A fitted peak outside the sampled neighbourhood is not trusted.
+        half_span = np.maximum(np.abs(u[k - 1]), np.abs(u[k + 1]))
+        wild = ~(np.abs(shift) <= half_span)
+        bad = on_edge | inverted | wild
+        coarse = z0.astype(np.float32)
+        if method == FitMethod.ARGMAX:
+            height = coarse.copy()
+        else:
+            height = np.where(bad, coarse, (z0 + shift)).astype(np.float32)
+        sigma = np.where(inverted | on_edge, np.nan, np.sqrt(sigma2)).astype(np.float32)
+        f_peak = np.where(bad, f0, np.exp(np.minimum(log_peak, 80.0))).astype(np.float32)
+        # Pertuz's reliability over the 2k+1 samples (NaN samples skipped)
+        model = f_peak[None] * np.exp(-((u - (height - coarse)[None]) ** 2) / (2 * sigma2[None]))
+        resid = np.abs(w - model)
+        valid = np.isfinite(resid)
+        mean_res = np.where(valid, resid, 0).sum(0) / np.maximum(valid.sum(0), 1)
+        rel = 20.0 * np.log10(f_peak / np.maximum(mean_res, 1e-12 * np.maximum(f_peak, _TINY)))
+        rel = np.where(bad, 0.0, rel).astype(np.float32)
+        # The strongest focus more than k frames from the peak, less what the fitted peak
+        # itself predicts k+½ frames out (the tail of a wide peak is not a second peak).
+        step = float(np.median(np.diff(z_mm))) if n > 1 else 1.0
+        tail = np.where(inverted | on_edge, 0.0, np.exp(-((k + 0.5) * step) ** 2 / (2 * sigma2)))
+        ambiguity = np.clip(tracker.alternative / np.maximum(tracker.best, _TINY) - tail,
+                            0, 1).astype(np.float32)
+        prominence = np.clip(1.0 - np.nanmin(np.where(np.isfinite(w), w, np.inf), axis=0)
+                             / np.maximum(f0, _TINY), 0, 1).astype(np.float32)
+    return PeakFit(
+        height_mm=height,
+        coarse_mm=coarse,
+        f_peak=f_peak,
+        sigma_mm=sigma,
+        reliability_db=rel,
+        ambiguity=ambiguity,
+        prominence=prominence,
+        interior=~bad,
+        best_idx=tracker.best_idx,
+    )
+
+
+def _lsq_log_parabola(u: np.ndarray, w: np.ndarray):
+    """Least-squares ln F = l0 + β·u + c·u² over the window, weights F² (Caruana/Guo).
+
+    Returns ``(c, beta, l0)`` per pixel.
+    """
+    valid = np.isfinite(w) & np.isfinite(u) & (w > 0)
+    f = np.where(valid, w, 0.0).astype(np.float64)
+    uu = np.where(valid, u, 0.0).astype(np.float64)
+    lg = np.where(valid, np.log(np.maximum(f, 1e-30)), 0.0)
+    wt = f * f
+    s = [np.sum(wt * uu**p, axis=0) for p in range(5)]
+    t = [np.sum(wt * uu**p * lg, axis=0) for p in range(3)]
+    # normal equations [[s0 s1 s2][s1 s2 s3][s2 s3 s4]] · [l0 β c] = [t0 t1 t2]
+    a = np.stack([np.stack([s[0], s[1], s[2]], -1),
+                  np.stack([s[1], s[2], s[3]], -1),
+                  np.stack([s[2], s[3], s[4]], -1)], -2)
+    b = np.stack(t, -1)[..., None]
+    ok = valid.sum(0) >= 3
+    det = np.linalg.det(a)
+    ok &= np.abs(det) > 1e-300
+    a[~ok] = np.eye(3)
+    b[~ok] = 0
+    sol = np.linalg.solve(a, b)[..., 0]
+    l0, beta, c = sol[..., 0], sol[..., 1], sol[..., 2]
+    c = np.where(ok, c, np.nan)
+    return c.astype(np.float32), beta.astype(np.float32), l0.astype(np.float32)

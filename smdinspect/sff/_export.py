@@ -1,0 +1,268 @@
+"""Writers of a reconstruction: TIFF maps, previews, point cloud, mesh, summary.
+
+Every file is written atomically (temporary file + rename). Open3D, trimesh and
+matplotlib are imported inside the functions that need them.
+"""
+
+from __future__ import annotations
+
+import logging
+import time
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from .. import _atomic
+from ..errors import InputError
+from ._surface import Surface, _unit_rgb
+
+__all__ = [
+    "height_field_mesh",
+    "render_height_png",
+    "render_view3d_png",
+    "surface_point_cloud",
+    "write_point_cloud",
+    "write_reconstruction",
+]
+
+log = logging.getLogger(__name__)
+
+MESH_MAX_SIDE = 384  # the exported height-field mesh is at most this many vertices a side
+
+
+def _require(module: str):
+    import importlib
+
+    try:
+        return importlib.import_module(module)
+    except ImportError as exc:  # pragma: no cover - depends on the machine
+        raise InputError(
+            f"{module} is needed for this output but cannot be imported ({exc}); "
+            "run scripts/setup.sh (on Debian, open3d also needs the libusb-1.0-0 package)"
+        ) from None
+
+
+def surface_point_cloud(surface: Surface, *, keep_unreliable: bool = False):
+    """An ``open3d.t.geometry.PointCloud`` of the surface (mm, colour, confidence)."""
+    o3d = _require("open3d")
+    xyz, rgb, conf, _ = surface.points(keep_unreliable=keep_unreliable)
+    pcd = o3d.t.geometry.PointCloud()
+    pcd.point.positions = o3d.core.Tensor(xyz.astype(np.float32))
+    pcd.point.colors = o3d.core.Tensor(np.round(rgb * 255).astype(np.uint8))
+    pcd.point.confidence = o3d.core.Tensor(conf.astype(np.float32)[:, None])
+    return pcd
+
+
+def write_point_cloud(surface: Surface, path: str | Path, *, keep_unreliable: bool = False) -> Path:
+    """Write ``cloud.ply``: binary PLY with x, y, z (mm), red/green/blue, confidence."""
+    o3d = _require("open3d")
+    pcd = surface_point_cloud(surface, keep_unreliable=keep_unreliable)
+    with _atomic.atomic_path(path) as tmp:
+        if not o3d.t.io.write_point_cloud(str(tmp), pcd, write_ascii=False):
+            raise OSError(f"open3d could not write {path}")
+    return Path(path)
+
+
+def height_field_mesh(surface: Surface, *, keep_unreliable: bool = False,
+                      max_side: int = MESH_MAX_SIDE):
+    """Triangulate the height map as a ``trimesh.Trimesh`` (mm, vertex colours).
+
+    The grid is subsampled so neither side exceeds ``max_side`` vertices. A triangle is
+    kept only if its three vertices are reliable (all, with ``keep_unreliable``).
+    """
+    trimesh = _require("trimesh")
+    h, w = surface.shape
+    step = max(1, int(np.ceil(max(h, w) / max_side)))
+    rows = np.arange(0, h, step)
+    cols = np.arange(0, w, step)
+    rr, cc = np.meshgrid(rows, cols, indexing="ij")
+    x, y = surface.xy_mm()
+    verts = np.column_stack([x[rr, cc].ravel(), y[rr, cc].ravel(),
+                             surface.height_mm[rr, cc].ravel().astype(np.float64)])
+    ok = (np.ones(rr.shape, bool) if keep_unreliable else surface.reliable[rr, cc]).ravel()
+    gh, gw = rr.shape
+    idx = np.arange(gh * gw).reshape(gh, gw)
+    a, b = idx[:-1, :-1].ravel(), idx[:-1, 1:].ravel()
+    c, d = idx[1:, :-1].ravel(), idx[1:, 1:].ravel()
+    # y grows upwards (rows downwards), so (a, c, b) is counter-clockwise seen from +z
+    faces = np.concatenate([np.column_stack([a, c, b]), np.column_stack([b, c, d])])
+    faces = faces[ok[faces].all(axis=1)]
+    colours = np.round(_unit_rgb(surface.aif)[rr, cc].reshape(-1, 3) * 255).astype(np.uint8)
+    mesh = trimesh.Trimesh(vertices=verts, faces=faces,
+                           vertex_colors=np.column_stack([colours, np.full(len(colours), 255, np.uint8)]),
+                           process=False)
+    mesh.remove_unreferenced_vertices()
+    return mesh
+
+
+def _figure(width_in: float, height_in: float, dpi: int = 110):
+    _require("matplotlib")
+    from matplotlib.backends.backend_agg import FigureCanvasAgg
+    from matplotlib.figure import Figure
+
+    fig = Figure(figsize=(width_in, height_in), dpi=dpi)
+    FigureCanvasAgg(fig)
+    return fig
+
+
+def _save_figure(fig, path: Path) -> Path:
+    with _atomic.atomic_path(path) as tmp:
+        fig.savefig(tmp, format="png")
+    return path
+
+
+def _display_range(surface: Surface) -> tuple[float, float]:
+    vals = surface.height_mm[surface.reliable]
+    if vals.size < 10:
+        vals = surface.height_mm.ravel()
+    lo, hi = np.percentile(vals, [0.5, 99.5])
+    if hi - lo < 1e-6:
+        hi = lo + 1e-3
+    return float(lo), float(hi)
+
+
+def render_height_png(surface: Surface, path: str | Path) -> Path:
+    """Colour-mapped heights with a legend in mm; unreliable pixels shown grey."""
+    path = Path(path)
+    h, w = surface.shape
+    lo, hi = _display_range(surface)
+    fig = _figure(7.0, 7.0 * h / w + 0.6)
+    ax = fig.add_axes([0.02, 0.06, 0.80, 0.88])
+    masked = np.ma.masked_where(~surface.reliable, surface.height_mm)
+    ax.set_facecolor((0.55, 0.55, 0.55))
+    im = ax.imshow(masked, cmap="viridis", vmin=lo, vmax=hi, interpolation="nearest")
+    ax.set_xticks([])
+    ax.set_yticks([])
+    ax.set_title(f"height above board (mm); grey: unreliable ({100 * (1 - surface.coverage):.1f}%)",
+                 fontsize=9)
+    cax = fig.add_axes([0.85, 0.06, 0.035, 0.88])
+    fig.colorbar(im, cax=cax, label="height (mm)")
+    if surface.pixel_size_mm:
+        bar_mm = _nice(w * surface.pixel_size_mm / 5)
+        bar_px = bar_mm / surface.pixel_size_mm
+        ax.plot([0.04 * w, 0.04 * w + bar_px], [0.95 * h] * 2, color="white", lw=3)
+        ax.text(0.04 * w, 0.93 * h, f"{bar_mm:g} mm", color="white", fontsize=8)
+    return _save_figure(fig, path)
+
+
+def _nice(x: float) -> float:
+    e = 10 ** np.floor(np.log10(x))
+    for m in (1, 2, 5, 10):
+        if m * e >= x:
+            return float(m * e)
+    return float(10 * e)
+
+
+def render_view3d_png(surface: Surface, path: str | Path, *, max_side: int = 160) -> Path:
+    """A perspective 3D preview of the textured surface (the picture users look at first).
+
+    Unreliable pixels are filled from their reliable neighbours for the picture only;
+    the vertical axis is exaggerated so that solder fillets are visible (noted on it).
+    """
+    import cv2
+
+    path = Path(path)
+    h, w = surface.shape
+    step = max(1, int(np.ceil(max(h, w) / max_side)))
+    height = _fill_unreliable(surface)
+    z = cv2.resize(height, (len(range(0, w, step)), len(range(0, h, step))),
+                   interpolation=cv2.INTER_AREA)
+    rgb = cv2.resize(_unit_rgb(surface.aif), (z.shape[1], z.shape[0]), interpolation=cv2.INTER_AREA)
+    p = surface.pixel_size_mm or 1.0
+    xs = np.arange(z.shape[1]) * step * p
+    ys = (h - 1 - np.arange(z.shape[0]) * step) * p
+    xg, yg = np.meshgrid(xs, ys)
+    lo, hi = _display_range(surface)
+    extent = max(xs[-1] - xs[0], abs(ys[0] - ys[-1]), 1e-9)
+    zspan = max(hi - lo, 1e-6)
+    exaggeration = max(1.0, round(0.35 * extent / zspan, 1))
+    fig = _figure(7.5, 6.0)
+    ax = fig.add_subplot(projection="3d")
+    ax.plot_surface(xg, yg, np.clip(z, lo, hi), facecolors=np.clip(rgb, 0, 1), rstride=1,
+                    cstride=1, linewidth=0, antialiased=False, shade=False)
+    ax.set_box_aspect((xs[-1] - xs[0] or 1, abs(ys[0] - ys[-1]) or 1, zspan * exaggeration))
+    ax.view_init(elev=38, azim=-60)
+    unit = "mm" if surface.pixel_size_mm else "px"
+    ax.set_xlabel(f"x ({unit})", fontsize=8)
+    ax.set_ylabel(f"y ({unit})", fontsize=8)
+    ax.set_zlabel("z (mm)", fontsize=8)
+    ax.tick_params(labelsize=7)
+    ax.set_title(f"3D view (height exaggerated ×{exaggeration:g})", fontsize=9)
+    return _save_figure(fig, path)
+
+
+def _fill_unreliable(surface: Surface) -> np.ndarray:
+    """Heights with unreliable pixels replaced by the nearest reliable one (display only)."""
+    from scipy import ndimage
+
+    height = surface.height_mm.astype(np.float32)
+    if surface.reliable.all() or not surface.reliable.any():
+        return height
+    _, (ri, ci) = ndimage.distance_transform_edt(~surface.reliable, return_indices=True)
+    return height[ri, ci]
+
+
+def write_reconstruction(
+    surface: Surface,
+    out_dir: str | Path,
+    *,
+    keep_unreliable: bool = False,
+    previews: bool = True,
+    extra_summary: dict[str, Any] | None = None,
+) -> dict[str, Path]:
+    """Write every output of a reconstruction into ``out_dir``.
+
+    Files: ``height_mm.tiff`` (float32, every pixel), ``confidence.tiff`` (float32,
+    [0, 1]), ``aif.png``, ``height.png``, ``view3d.png``, ``cloud.ply``, ``mesh.ply``,
+    ``mesh.stl`` and ``summary.json``.
+
+    Returns
+    -------
+    dict
+        Name → path of every file written.
+    """
+    t0 = time.perf_counter()
+    out = Path(out_dir)
+    out.mkdir(parents=True, exist_ok=True)
+    paths: dict[str, Path] = {}
+    paths["height_mm.tiff"] = _atomic.write_tiff(out / "height_mm.tiff", surface.height_mm.astype(np.float32))
+    paths["confidence.tiff"] = _atomic.write_tiff(out / "confidence.tiff", surface.confidence.astype(np.float32))
+    paths["aif.png"] = _atomic.write_image(out / "aif.png", _png_ready(surface.aif))
+    if previews:
+        paths["height.png"] = render_height_png(surface, out / "height.png")
+        paths["view3d.png"] = render_view3d_png(surface, out / "view3d.png")
+    paths["cloud.ply"] = write_point_cloud(surface, out / "cloud.ply", keep_unreliable=keep_unreliable)
+    mesh = height_field_mesh(surface, keep_unreliable=keep_unreliable)
+    for name in ("mesh.ply", "mesh.stl"):
+        with _atomic.atomic_path(out / name) as tmp:
+            mesh.export(tmp)
+        paths[name] = out / name
+    reliable = surface.height_mm[surface.reliable]
+    summary = {
+        "smdinspect": "reconstruction",
+        "pixel_size_mm": surface.pixel_size_mm,
+        "xy_units": "mm" if surface.pixel_size_mm else "px",
+        "coverage": round(surface.coverage, 4),
+        "height_mm": None if reliable.size == 0 else {
+            "min": float(reliable.min()), "p01": float(np.percentile(reliable, 1)),
+            "median": float(np.median(reliable)), "p99": float(np.percentile(reliable, 99)),
+            "max": float(reliable.max()),
+        },
+        "cloud_points": int(surface.reliable.sum() if not keep_unreliable else surface.reliable.size),
+        "mesh_faces": int(len(mesh.faces)),
+        "keep_unreliable": keep_unreliable,
+        **surface.meta,
+        **(extra_summary or {}),
+    }
+    summary["seconds"] = {**summary.get("seconds", {}), "write": round(time.perf_counter() - t0, 3)}
+    summary["files"] = sorted(list(paths) + ["summary.json"])
+    paths["summary.json"] = _atomic.write_json(out / "summary.json", summary)
+    return paths
+
+
+def _png_ready(image: np.ndarray) -> np.ndarray:
+    """uint8/uint16 as they are; float frames (taken as [0, 1]) to 16-bit for the PNG."""
+    if image.dtype in (np.uint8, np.uint16):
+        return image
+    return np.round(np.clip(image, 0.0, 1.0) * 65535).astype(np.uint16)
