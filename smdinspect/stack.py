@@ -163,9 +163,10 @@ class FocalStack:
         pixel_size_mm: float | None = None,
         z0_mm: float = 0.0,
     ) -> "FocalStack":
-        """A stack from image files in focus order: frame n at ``z0_mm + n*step_mm``.
+        """A stack from image files in focus order, ``step_mm`` apart.
 
-        A negative ``step_mm`` says the list runs from high to low focus.
+        A negative ``step_mm`` says the list runs from high to low focus (nearest focus
+        first). The lowest frame is placed at ``z0_mm``.
         """
         step = _finite_number(step_mm, "step_mm")
         if step == 0:
@@ -174,7 +175,8 @@ class FocalStack:
         for p in paths:
             if not p.is_file():
                 raise InputError(f"frame file not found: {p}")
-        frames = [Frame(p, z0_mm + n * step) for n, p in enumerate(paths)]
+        low = min(0.0, (len(paths) - 1) * step)
+        frames = [Frame(p, z0_mm + n * step - low) for n, p in enumerate(paths)]
         return cls._sorted(frames, pixel_size_mm=pixel_size_mm, root=None)
 
     @classmethod

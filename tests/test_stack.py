@@ -100,6 +100,7 @@ def test_image_list_needs_step_and_accepts_negative(tmp_path):
         open_stack(paths)
     stack = open_stack(paths, step_mm=-0.05)
     assert [f.path.name for f in stack.frames] == names[::-1]
+    np.testing.assert_allclose(stack.z_mm, [0.0, 0.05, 0.10, 0.15], atol=1e-12)
     stack = open_stack([tmp_path], step_mm=0.05, pixel_size_mm=0.01)
     assert len(stack) == 4 and stack.pixel_size_mm == 0.01
     with pytest.raises(InputError, match="not found"):

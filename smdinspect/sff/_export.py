@@ -157,7 +157,8 @@ def _nice(x: float) -> float:
 def render_view3d_png(surface: Surface, path: str | Path, *, max_side: int = 160) -> Path:
     """A perspective 3D preview of the textured surface (the picture users look at first).
 
-    Unreliable pixels are filled from their reliable neighbours for the picture only;
+    Unreliable pixels are filled from their reliable neighbours and the heights median
+    filtered, for the picture only;
     the vertical axis is exaggerated so that solder fillets are visible (noted on it).
     """
     import cv2
@@ -168,6 +169,7 @@ def render_view3d_png(surface: Surface, path: str | Path, *, max_side: int = 160
     height = _fill_unreliable(surface)
     z = cv2.resize(height, (len(range(0, w, step)), len(range(0, h, step))),
                    interpolation=cv2.INTER_AREA)
+    z = cv2.medianBlur(z.astype(np.float32), 5)  # display only: tame isolated outliers
     rgb = cv2.resize(_unit_rgb(surface.aif), (z.shape[1], z.shape[0]), interpolation=cv2.INTER_AREA)
     p = surface.pixel_size_mm or 1.0
     xs = np.arange(z.shape[1]) * step * p
@@ -188,7 +190,9 @@ def render_view3d_png(surface: Surface, path: str | Path, *, max_side: int = 160
     ax.set_ylabel(f"y ({unit})", fontsize=8)
     ax.set_zlabel("z (mm)", fontsize=8)
     ax.tick_params(labelsize=7)
-    ax.set_title(f"3D view (height exaggerated ×{exaggeration:g})", fontsize=9)
+    scale = (f"height exaggerated ×{exaggeration:g}" if surface.pixel_size_mm
+             else "height scaled for display; pixel size unknown")
+    ax.set_title(f"3D view ({scale})", fontsize=9)
     return _save_figure(fig, path)
 
 
