@@ -21,7 +21,8 @@ from smdinspect.sff._focus import OPERATORS, FocusOperator, focus_measure
 
 
 def _time_ms(fn, runs: int) -> tuple[float, float]:
-    fn()  # warm-up: caches, page faults, OpenCV thread pool
+    for _ in range(3):  # warm-up: caches, page faults, OpenCV thread pool
+        fn()
     times = []
     for _ in range(runs):
         t0 = time.perf_counter()

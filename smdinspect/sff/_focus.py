@@ -129,7 +129,7 @@ _THRESHOLDED = frozenset(
 )
 # Ratio operators: a negative grey level makes them meaningless.
 _NEEDS_NON_NEGATIVE = frozenset(("glvn", "cheb", "wavr", "dcte", "dctr", "hel"))
-# Variance / ratio-of-sums operators: a 1-px window makes them identically 0.
+# Variance operators (glvn is a variance over a mean): a 1-px window makes them 0.
 _NEEDS_WINDOW_3 = frozenset(("lapv", "tenv", "glva", "glvn", "glvl", "wavv"))
 
 
@@ -262,10 +262,33 @@ def _window_var(src: np.ndarray, window_px: int) -> np.ndarray:
     """Variance over the window, accumulated in float64; float64, >= 0."""
     x = src.astype(np.float64)
     mean = _window_mean(x, window_px)
-    var = _window_mean(x * x, window_px)
-    var -= mean * mean
+    np.multiply(x, x, out=x)
+    var = _window_mean(x, window_px)
+    np.multiply(mean, mean, out=mean)
+    var -= mean
     np.maximum(var, 0.0, out=var)
     return var
+
+
+def _abs(a: np.ndarray) -> np.ndarray:
+    """In place |a| (fresh 4 MB temporaries cost page faults: work in place)."""
+    return np.abs(a, out=a)
+
+
+def _sum_of_squares(a: np.ndarray, b: np.ndarray) -> np.ndarray:
+    """In place a = a² + b²."""
+    cv2.multiply(a, a, dst=a)
+    cv2.accumulateSquare(b, a)
+    return a
+
+
+def _sum_of_abs_responses(g: np.ndarray, kernels) -> tuple[np.ndarray, np.ndarray]:
+    """Σ_k |g ⋆ k| (float32) and a spare buffer of the same shape."""
+    acc = _abs(_filter(g, kernels[0]))
+    tmp = np.empty_like(acc)
+    for kernel in kernels[1:]:
+        acc += _abs(_filter(g, kernel, dst=tmp))
+    return acc, tmp
 
 
 def _apply_threshold(resp: np.ndarray, threshold: float) -> np.ndarray:
@@ -277,8 +300,10 @@ def _apply_threshold(resp: np.ndarray, threshold: float) -> np.ndarray:
     return resp
 
 
-def _thresholded_sum(resp: np.ndarray, window_px: int, threshold: float) -> np.ndarray:
-    return _window_sum(_apply_threshold(resp, threshold), window_px)
+def _thresholded_sum(resp: np.ndarray, window_px: int, threshold: float, *,
+                     dst=None) -> np.ndarray:
+    """Σ_U of ``resp`` (modified in place by the threshold); into ``dst`` if given."""
+    return _window_sum(_apply_threshold(resp, threshold), window_px, dst=dst)
 
 
 def _ratio(num: np.ndarray, den: np.ndarray) -> np.ndarray:
@@ -305,17 +330,15 @@ def _op_sml(g, window_px, threshold):
     stencil [1, -2, 1] (the squared form of the ARCHITECTURE map; Nayar's own ML sums
     absolute values, see ``lapm``). SML = Σ_U ML·[ML >= T] with Nayar's threshold T.
 
-    About 1.2 ms per 1024² float32 frame with a 9-px window on 2 cores: two 1x3
+    About 1 ms per 1024² float32 frame with a 9-px window on 2 cores: two 1x3
     filter2D, in-place square and accumulate, and a separable sum of ones (measured
     faster than Sobel(dx=2, ksize=1) and than boxFilter). Preallocated buffers
     (an ``out=`` variant) measured no faster, so there is none.
     """
     dxx = _filter(g, _K_XX)
     dyy = _filter(g, _K_YY)
-    cv2.multiply(dxx, dxx, dst=dxx)
-    cv2.accumulateSquare(dyy, dxx)  # dxx += dyy²
-    _apply_threshold(dxx, threshold)
-    return _window_sum(dxx, window_px, dst=dyy)
+    ml = _sum_of_squares(dxx, dyy)  # in place: dxx = dxx² + dyy²
+    return _thresholded_sum(ml, window_px, threshold, dst=dyy)
 
 
 def _op_lapm(g, window_px, threshold):
@@ -324,9 +347,8 @@ def _op_lapm(g, window_px, threshold):
     ML_abs = |2g(x,y) − g(x−1,y) − g(x+1,y)| + |2g(x,y) − g(x,y−1) − g(x,y+1)|;
     F = Σ_U ML_abs·[ML_abs >= T].
     """
-    dxx = np.abs(_filter(g, _K_XX))
-    dxx += np.abs(_filter(g, _K_YY))
-    return _thresholded_sum(dxx, window_px, threshold)
+    acc, tmp = _sum_of_abs_responses(g, (_K_XX, _K_YY))
+    return _thresholded_sum(acc, window_px, threshold, dst=tmp)
 
 
 def _op_lape(g, window_px, threshold):
@@ -345,10 +367,8 @@ def _op_lapd(g, window_px, threshold):
     LD = |g_xx| + |g_yy| + |g_uu| + |g_vv|, u and v the two diagonals, whose second
     differences are divided by 2 (step √2); F = Σ_U LD·[LD >= T].
     """
-    acc = np.abs(_filter(g, _K_XX))
-    for kernel in (_K_YY, _K_UU, _K_VV):
-        acc += np.abs(_filter(g, kernel))
-    return _thresholded_sum(acc, window_px, threshold)
+    acc, tmp = _sum_of_abs_responses(g, (_K_XX, _K_YY, _K_UU, _K_VV))
+    return _thresholded_sum(acc, window_px, threshold, dst=tmp)
 
 
 def _op_lapv(g, window_px, threshold):
@@ -363,11 +383,10 @@ def _op_lapv(g, window_px, threshold):
 
 
 def _sobel_sq(g):
+    """(Gx² + Gy², spare buffer), Gx, Gy the 3x3 Sobel responses."""
     gx = cv2.Sobel(g, _F32, 1, 0, ksize=3, borderType=_BORDER)
     gy = cv2.Sobel(g, _F32, 0, 1, ksize=3, borderType=_BORDER)
-    cv2.multiply(gx, gx, dst=gx)
-    cv2.accumulateSquare(gy, gx)
-    return gx
+    return _sum_of_squares(gx, gy), gy
 
 
 def _op_ten(g, window_px, threshold):
@@ -375,7 +394,8 @@ def _op_ten(g, window_px, threshold):
 
     F = Σ_U (Gx² + Gy²)·[Gx² + Gy² >= T], Gx, Gy the 3x3 Sobel responses.
     """
-    return _thresholded_sum(_sobel_sq(g), window_px, threshold)
+    g2, spare = _sobel_sq(g)
+    return _thresholded_sum(g2, window_px, threshold, dst=spare)
 
 
 def _op_tenv(g, window_px, threshold):
@@ -383,7 +403,7 @@ def _op_tenv(g, window_px, threshold):
 
     F = Var_U(Gx² + Gy²), Gx, Gy the 3x3 Sobel responses.
     """
-    return _f32(_window_var(_sobel_sq(g), window_px))
+    return _f32(_window_var(_sobel_sq(g)[0], window_px))
 
 
 def _gauss_gradient(g):
@@ -400,9 +420,7 @@ def _op_gder(g, window_px, threshold):
     on the per-pixel sum of squares.
     """
     gx, gy = _gauss_gradient(g)
-    cv2.multiply(gx, gx, dst=gx)
-    cv2.accumulateSquare(gy, gx)
-    return _thresholded_sum(gx, window_px, threshold)
+    return _thresholded_sum(_sum_of_squares(gx, gy), window_px, threshold, dst=gy)
 
 
 def _op_grae(g, window_px, threshold):
@@ -412,9 +430,7 @@ def _op_grae(g, window_px, threshold):
     """
     gx = _filter(g, _K_FWD_X)
     gy = _filter(g, _K_FWD_Y)
-    cv2.multiply(gx, gx, dst=gx)
-    cv2.accumulateSquare(gy, gx)
-    return _thresholded_sum(gx, window_px, threshold)
+    return _thresholded_sum(_sum_of_squares(gx, gy), window_px, threshold, dst=gy)
 
 
 def _op_grat(g, window_px, threshold):
@@ -422,9 +438,8 @@ def _op_grat(g, window_px, threshold):
 
     F = Σ_U (|g(x+1,y) − g(x,y)| + |g(x,y+1) − g(x,y)|), per-pixel values < T set to 0.
     """
-    acc = np.abs(_filter(g, _K_FWD_X))
-    acc += np.abs(_filter(g, _K_FWD_Y))
-    return _thresholded_sum(acc, window_px, threshold)
+    acc, tmp = _sum_of_abs_responses(g, (_K_FWD_X, _K_FWD_Y))
+    return _thresholded_sum(acc, window_px, threshold, dst=tmp)
 
 
 # --------------------------------------------------------------------------- statistics
@@ -501,10 +516,10 @@ def _op_wavs(g, window_px, threshold):
     F = Σ_U (|LH| + |HL| + |HH|), per-pixel sums < T set to 0.
     """
     lh, hl, hh = _haar_details(g)
-    acc = np.abs(lh)
-    acc += np.abs(hl)
-    acc += np.abs(hh)
-    return _thresholded_sum(acc, window_px, threshold)
+    acc = _abs(lh)
+    acc += _abs(hl)
+    acc += _abs(hh)
+    return _thresholded_sum(acc, window_px, threshold, dst=hl)
 
 
 def _op_wavv(g, window_px, threshold):
@@ -524,12 +539,16 @@ def _op_wavr(g, window_px, threshold):
 
     F = Σ_U (LH² + HL² + HH²) / Σ_U LL², undecimated one-level Haar bands.
     """
-    hi = None
-    for band in _haar_details(g):
-        b = band.astype(np.float64)
-        hi = b * b if hi is None else hi + b * b
-    ll = _filter(g.astype(np.float64), _HAAR_LL, ddepth=_F64, anchor=_HAAR_ANCHOR)
-    return _ratio(_window_sum(hi, window_px), _window_sum(ll * ll, window_px))
+    x = g.astype(np.float64)
+    hi = np.zeros_like(x)
+    band = np.empty_like(x)
+    for kernel in (_HAAR_LH, _HAAR_HL, _HAAR_HH):
+        _filter(x, kernel, ddepth=_F64, dst=band, anchor=_HAAR_ANCHOR)
+        np.multiply(band, band, out=band)
+        hi += band
+    ll = _filter(x, _HAAR_LL, ddepth=_F64, dst=band, anchor=_HAAR_ANCHOR)
+    np.multiply(ll, ll, out=ll)
+    return _ratio(_window_sum(hi, window_px, dst=x), _window_sum(ll, window_px))
 
 
 # --------------------------------------------------------------------------- DCT
@@ -584,7 +603,7 @@ def _op_bren(g, window_px, threshold):
     cv2.multiply(dx, dx, dst=dx)
     cv2.multiply(dy, dy, dst=dy)
     np.maximum(dx, dy, out=dx)
-    return _thresholded_sum(dx, window_px, threshold)
+    return _thresholded_sum(dx, window_px, threshold, dst=dy)
 
 
 def _op_cont(g, window_px, threshold):
@@ -592,10 +611,8 @@ def _op_cont(g, window_px, threshold):
 
     C = Σ over the 8 neighbours n of |g(x,y) − g(n)|; F = Σ_U C·[C >= T].
     """
-    acc = np.zeros(g.shape, dtype=np.float32)
-    for kernel in _K_NEIGHBOURS:
-        acc += np.abs(_filter(g, kernel))
-    return _thresholded_sum(acc, window_px, threshold)
+    acc, tmp = _sum_of_abs_responses(g, _K_NEIGHBOURS)
+    return _thresholded_sum(acc, window_px, threshold, dst=tmp)
 
 
 def _op_curv(g, window_px, threshold):
@@ -605,46 +622,43 @@ def _op_curv(g, window_px, threshold):
     (each coefficient is one 3x3 correlation); K = |b| + |c| + |d| + |e|;
     F = Σ_U K·[K >= T].
     """
-    acc = np.zeros(g.shape, dtype=np.float32)
-    for kernel in _K_CURV:
-        acc += np.abs(_filter(g, kernel))
-    return _thresholded_sum(acc, window_px, threshold)
+    acc, tmp = _sum_of_abs_responses(g, _K_CURV)
+    return _thresholded_sum(acc, window_px, threshold, dst=tmp)
 
 
 def _op_hel(g, window_px, threshold):
     """Helmli and Scherer's mean ratio (miscellaneous; Helmli & Scherer 2001).
 
-    μ the 3x3 mean of g; R = max(μ, g) / min(μ, g) >= 1 with ε added to both, ε = 10⁻³
-    × the frame's mean grey level (guards dark pixels); F = mean_U(R − 1), so a flat
-    patch scores 0 like every other operator. Needs g >= 0.
+    μ the 3x3 mean of g; R = max(μ, g) / min(μ, g) >= 1, computed as
+    R − 1 = |g − μ| / (min(μ, g) + ε), ε = 10⁻³ × the frame's mean grey level (guards
+    dark pixels); F = mean_U(R − 1), so a flat patch scores 0 like every other
+    operator. Needs g >= 0.
     """
-    x = g.astype(np.float64)
-    eps = 1e-3 * float(x.mean()) + 1e-12
-    mu = _window_mean(x, 3)
-    hi = np.maximum(mu, x)
-    lo = np.minimum(mu, x)
-    hi += eps
-    lo += eps
-    r = hi / lo
-    r -= 1.0
-    return _f32(_window_mean(r, window_px))
+    eps = np.float32(1e-3 * float(cv2.mean(g)[0]) + 1e-12)
+    mu = _window_mean(g, 3)
+    ratio = cv2.absdiff(g, mu)
+    np.minimum(mu, g, out=mu)
+    mu += eps
+    np.divide(ratio, mu, out=ratio)
+    return _window_mean(ratio, window_px)
 
 
 def _op_sfil(g, window_px, threshold):
     """Steerable filters (miscellaneous; Minhas et al. 2009).
 
-    Gaussian first-derivative filters (σ = 1 px) steered to θ = 0°, 45°, 90°, 135°:
+    Gaussian first-derivative filters (σ = 1 px) steered to θ = 0°, 45°, 90°,
+    135°:
     R_θ = cos θ·Gx + sin θ·Gy; S = max_θ |R_θ| (the 8 directions of 45°, as the sign
     flips with θ + 180°); F = Σ_U S·[S >= T].
     """
     gx, gy = _gauss_gradient(g)
-    best = np.abs(gx)
-    np.maximum(best, np.abs(gy), out=best)
-    h = np.float32(math.sqrt(0.5))
-    for s in (1.0, -1.0):
-        r = cv2.addWeighted(gx, float(h), gy, float(s * h), 0.0)
-        np.maximum(best, np.abs(r), out=best)
-    return _thresholded_sum(best, window_px, threshold)
+    h = math.sqrt(0.5)
+    best = _abs(cv2.addWeighted(gx, h, gy, h, 0.0))
+    tmp = _abs(cv2.addWeighted(gx, h, gy, -h, 0.0))
+    np.maximum(best, tmp, out=best)
+    np.maximum(best, _abs(gx), out=best)
+    np.maximum(best, _abs(gy), out=best)
+    return _thresholded_sum(best, window_px, threshold, dst=tmp)
 
 
 def _op_vol4(g, window_px, threshold):
@@ -656,14 +670,16 @@ def _op_vol4(g, window_px, threshold):
     mean grey level; F = max(0, Σ_U V).
     """
     acc = np.zeros(g.shape, dtype=np.float32)
+    d1 = np.empty_like(acc)
+    d2 = np.empty_like(acc)
     for lag1, lag2 in ((_K_LAG1_X, _K_LAG2_X), (_K_LAG1_Y, _K_LAG2_Y)):
-        d2 = _filter(g, lag2)
-        d1 = _filter(g, lag1)
+        _filter(g, lag2, dst=d2)
+        _filter(g, lag1, dst=d1)
         cv2.accumulateSquare(d2, acc)
-        d1 *= d1
+        cv2.multiply(d1, d1, dst=d1)
         acc -= d1
     acc *= 0.5
-    out = _window_sum(acc, window_px)
+    out = _window_sum(acc, window_px, dst=d1)
     np.maximum(out, 0.0, out=out)
     return out
 
@@ -723,7 +739,9 @@ def _operator_name(operator) -> str:
         return operator.value
     if isinstance(operator, str) and operator.lower() in _OPERATORS:
         return operator.lower()
-    raise InputError(f"unknown focus operator {operator!r}; choose one of {', '.join(OPERATORS)}")
+    raise InputError(
+        f"unknown focus operator {operator!r}; choose one of {', '.join(OPERATORS)}"
+    )
 
 
 def _as_float32(frame) -> np.ndarray:
@@ -766,14 +784,14 @@ def focus_measure(frame, *, operator="sml", window_px=9, threshold=0.0) -> np.nd
         |2g(x,y) − g(x−1,y) − g(x+1,y)| + |2g(x,y) − g(x,y−1) − g(x,y+1)|, is ``"lapm"``.
     window_px : int
         Odd side of the square window U each pixel's value is aggregated over,
-        ``1 <= window_px <= min(H, W)``; variance and ratio operators need >= 3.
+        ``1 <= window_px <= min(H, W)``; the variance operators (``lapv tenv glva glvn
+        glvl wavv``) need >= 3.
     threshold : float
         Nayar's threshold T >= 0, in the units of the per-pixel response (grey levels
         squared for ``sml``): responses below T (compared in float32) count as 0 before
-        the window sum. Only
-        operators that sum a per-pixel response use it (``sml lape lapm lapd ten gder
-        grae grat wavs bren cont curv sfil``; ``FocusOperator(op).uses_threshold``);
-        a T > 0 with any other operator is an error.
+        the window sum. Only operators that sum a per-pixel response use it (``sml lape
+        lapm lapd ten gder grae grat wavs bren cont curv sfil``; see
+        ``FocusOperator(op).uses_threshold``); T > 0 with any other operator is an error.
 
     Returns
     -------
@@ -810,7 +828,7 @@ def focus_measure(frame, *, operator="sml", window_px=9, threshold=0.0) -> np.nd
         )
     if window_px < 3 and name in _NEEDS_WINDOW_3:
         raise InputError(f"operator {name!r} needs window_px >= 3; got {window_px}")
-    if name in _NEEDS_NON_NEGATIVE and g.dtype.kind == "f":
+    if name in _NEEDS_NON_NEGATIVE:
         low = float(g.min())
         if low < 0:
             raise InputError(

@@ -340,6 +340,13 @@ def test_non_finite_frame(bad, dtype, texture):
         focus_measure(frame)
 
 
+def test_float64_frame_beyond_float32_range(texture):
+    frame = texture.astype(np.float64)
+    frame[0, 0] = 1e300
+    with pytest.raises(InputError, match="beyond the float32 range"):
+        focus_measure(frame)
+
+
 @pytest.mark.parametrize("threshold", [-1.0, np.nan, np.inf, "5", None, True])
 def test_bad_threshold(threshold, texture):
     with pytest.raises(InputError, match="threshold must be a finite number >= 0; got"):
