@@ -1,1 +1,41 @@
-"""smdinspect.inspect."""
+"""Inspection: the reference board, registration, per-joint measurement, verdicts, reports.
+
+Pipeline (pure functions on arrays and small dataclasses)::
+
+    Surface ──fit_board_plane──▶ heights above the board
+            ──register_board───▶ RegistrationResult (board → world placement)
+            ──measure / judge──▶ JointResult, ComponentResult ──▶ InspectionResult
+            ──write_reports────▶ report.json, joints.csv, junit.xml, report.html
+
+:func:`inspect_surface` runs all of it; :func:`smdinspect.pipeline.inspect_stack`
+adds the reconstruction and the files.
+"""
+
+from ._board import Board, Component, Fiducial, Joint, load_board
+from ._config import InspectConfig, Verdict
+from ._plane import BoardPlane, fit_board_plane
+from ._reference import reference_mesh, reference_points, reference_prisms, render_reference
+from ._register import RegistrationResult, masked_ncc, register_board
+from ._result import ComponentResult, InspectionResult, JointResult
+
+__all__ = [
+    "Board",
+    "BoardPlane",
+    "Component",
+    "ComponentResult",
+    "Fiducial",
+    "InspectConfig",
+    "InspectionResult",
+    "Joint",
+    "JointResult",
+    "RegistrationResult",
+    "Verdict",
+    "fit_board_plane",
+    "load_board",
+    "masked_ncc",
+    "reference_mesh",
+    "reference_points",
+    "reference_prisms",
+    "register_board",
+    "render_reference",
+]
