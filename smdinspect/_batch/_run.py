@@ -1,0 +1,323 @@
+"""``run_batch``: inspect every stack under a folder, resumably."""
+
+from __future__ import annotations
+
+import contextlib
+import logging
+import math
+import os
+import time
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any, Callable, Iterator
+
+from ..errors import InputError
+from ._discover import discover_stacks, file_sha256
+from ._job import DEFAULT_INSPECT_FN, BoardJob, BoardResult, BoardStatus, clean_leftovers
+from ._report import merge_junit, write_summary_csv, write_summary_json
+from ._runners import run_dask, run_local
+
+__all__ = ["BatchResult", "run_batch"]
+
+log = logging.getLogger(__name__)
+
+SUMMARY_CSV = "summary.csv"
+SUMMARY_JSON = "summary.json"
+JUNIT_XML = "junit.xml"
+LOCK_FILE = ".smdinspect-batch.lock"
+#: Focus settings that change speed, not results: left out of the input fingerprint.
+_NEUTRAL_FOCUS_KEYS = ("workers",)
+
+
+@dataclass(frozen=True)
+class BatchResult:
+    """What :func:`run_batch` did.
+
+    Attributes
+    ----------
+    boards : tuple of BoardResult
+        One per stack, sorted by stack name.
+    out_dir : Path
+        The batch's report folder.
+    executor : str
+        Where the boards ran (``"process-pool(2 workers)"``, ``"dask(tcp://...)"``...).
+    seconds : float
+        Wall time of the whole batch.
+    summary_csv, summary_json, junit : Path
+        The batch-level outputs.
+    """
+
+    boards: tuple[BoardResult, ...]
+    out_dir: Path
+    executor: str
+    seconds: float
+    summary_csv: Path
+    summary_json: Path
+    junit: Path
+
+    @property
+    def exit_code(self) -> int:
+        """2 if any board errored, else 1 if any board has defects, else 0.
+
+        An error outranks defects: a batch with a board that could not be inspected
+        is incomplete, which a CI job must not mistake for "found defects".
+        """
+        return batch_exit_code(self.boards)
+
+    def counts(self) -> dict[str, int]:
+        """Boards per status, plus ``skipped`` (boards whose earlier reports were kept)."""
+        out = {s.value: 0 for s in BoardStatus}
+        for b in self.boards:
+            out[b.status.value] += 1
+        out["skipped"] = sum(b.skipped for b in self.boards)
+        return out
+
+    @property
+    def boards_per_minute(self) -> float:
+        """Boards inspected (not skipped) per minute of wall time."""
+        run = sum(not b.skipped for b in self.boards)
+        return 60.0 * run / self.seconds if self.seconds > 0 else math.nan
+
+    def board(self, stack: str) -> BoardResult:
+        for b in self.boards:
+            if b.stack == stack:
+                return b
+        raise KeyError(stack)
+
+
+def batch_exit_code(boards: Any) -> int:
+    """2 if any board errored, else 1 if any has defects, else 0."""
+    statuses = {b.status for b in boards}
+    if BoardStatus.ERROR in statuses:
+        return 2
+    if BoardStatus.DEFECTS in statuses:
+        return 1
+    return 0
+
+
+@contextlib.contextmanager
+def _locked(out_dir: Path) -> Iterator[None]:
+    """Hold an exclusive lock on ``out_dir`` (released by the OS if we are killed)."""
+    try:
+        import fcntl
+    except ImportError:  # pragma: no cover - not POSIX: no lock
+        yield
+        return
+    fh = open(out_dir / LOCK_FILE, "a+")
+    try:
+        try:
+            fcntl.flock(fh.fileno(), fcntl.LOCK_EX | fcntl.LOCK_NB)
+        except BlockingIOError:
+            raise InputError(f"another smdinspect batch is writing into {out_dir}; wait for it "
+                             "or choose another --out") from None
+        yield
+    finally:
+        fh.close()
+
+
+def _is_within(path: Path, parent: Path) -> bool:
+    try:
+        path.relative_to(parent)
+        return True
+    except ValueError:
+        return False
+
+
+def run_batch(
+    stacks_dir: str | os.PathLike,
+    board: str | os.PathLike,
+    out_dir: str | os.PathLike,
+    *,
+    workers: int | None = None,
+    scheduler: str | None = None,
+    dask_workers: int | None = None,
+    force: bool = False,
+    focus_config: Any = None,
+    inspect_config: Any = None,
+    keep_unreliable: bool = False,
+    progress: Callable[[int, int], None] | None = None,
+    inspect_fn: str = DEFAULT_INSPECT_FN,
+) -> BatchResult:
+    """Inspect every stack under ``stacks_dir`` against one reference board.
+
+    Each stack directory (a folder holding ``stack.json``, found recursively; see
+    :func:`discover_stacks`) is one board. Its reports (those of
+    :func:`smdinspect.pipeline.inspect_stack`) go to ``out_dir / <stack path relative
+    to stacks_dir>/``; the batch adds ``summary.csv``, ``summary.json`` and one merged
+    ``junit.xml`` in ``out_dir``.
+
+    A board that fails (corrupt stack, board not located, a crash) is recorded as
+    ``error`` with its reason and never stops the batch. The run is resumable: a board
+    whose report folder holds a done-marker for the same input fingerprint (stack.json,
+    frame files, board file, settings) and intact outputs is skipped, unless ``force``.
+    Board folders appear atomically (written into a temporary sibling, renamed into
+    place), so a killed run leaves no half-written report; its temporary folders are
+    removed by the next run.
+
+    Parameters
+    ----------
+    stacks_dir : path
+        Folder searched recursively for stack directories.
+    board : path
+        Reference board file (JSON; see ``references/README.md``). Checked before any
+        board runs: a bad board file fails the batch (InputError).
+    out_dir : path
+        The batch's report folder (created). May lie inside ``stacks_dir`` (it is not
+        searched) but not contain it.
+    workers : int, optional
+        Size of the local process pool (default ``os.cpu_count()``). Only for the
+        local pool.
+    scheduler : str, optional
+        Run on an existing Dask distributed cluster at this address
+        (``tcp://HOST:8786``); its workers must import the same smdinspect and see the
+        same paths.
+    dask_workers : int, optional
+        Run on a Dask ``LocalCluster`` of this many single-threaded worker processes
+        (127.0.0.1, no dashboard) started for this batch.
+    force : bool
+        Redo every board, even those whose reports are up to date.
+    focus_config : smdinspect.sff.FocusConfig, optional
+        Defaults to ``FocusConfig()`` with ``workers`` (focus threads per board) set to
+        ``max(1, cpu_count // pool size)`` for the local pool and 1 on Dask.
+    inspect_config : smdinspect.inspect.InspectConfig, optional
+        Defaults to ``InspectConfig()``.
+    keep_unreliable : bool
+        Passed to the pipeline (unreliable points kept in cloud and mesh).
+    progress : callable(done, total), optional
+        Called with the number of boards finished (skipped ones included).
+    inspect_fn : str
+        ``"module:function"`` run per board, with the signature and contract of
+        :func:`smdinspect.pipeline.inspect_stack` (the default); it must be importable
+        by the workers.
+
+    Returns
+    -------
+    BatchResult
+        ``exit_code`` is 2 if any board errored, else 1 if any has defects, else 0.
+
+    Raises
+    ------
+    InputError
+        Bad arguments, no stack found, a bad board file, ``out_dir`` locked by another
+        batch, a Dask scheduler that cannot be reached or whose workers lack smdinspect.
+    """
+    from .. import __version__
+    from ..inspect import InspectConfig, load_board
+    from ..sff import FocusConfig
+
+    t0 = time.perf_counter()
+    if scheduler is not None and dask_workers is not None:
+        raise InputError("give either scheduler (an existing Dask cluster) or dask_workers "
+                         "(a local one), not both")
+    if workers is not None and (scheduler is not None or dask_workers is not None):
+        raise InputError("workers sizes the local process pool; with a Dask cluster its "
+                         "workers run the boards")
+    for name, value in (("workers", workers), ("dask_workers", dask_workers)):
+        if value is not None and (isinstance(value, bool) or not isinstance(value, int)
+                                  or value < 1):
+            raise InputError(f"{name} must be an integer >= 1; got {value!r}")
+    if scheduler is not None and (not isinstance(scheduler, str) or not scheduler.strip()):
+        raise InputError(f"scheduler must be an address such as tcp://HOST:8786; got {scheduler!r}")
+
+    stacks_dir = Path(stacks_dir)
+    out_dir = Path(out_dir)
+    if not stacks_dir.is_dir():
+        raise InputError(f"stacks folder not found: {stacks_dir}")
+    s_real, o_real = stacks_dir.resolve(), out_dir.resolve()
+    if _is_within(s_real, o_real):
+        raise InputError(f"the report folder {out_dir} must not be (or contain) the stacks "
+                         f"folder {stacks_dir}")
+    stacks = discover_stacks(stacks_dir, exclude=(out_dir,))
+    if not stacks:
+        raise InputError(f"no stack directories (folders holding stack.json) under {stacks_dir}")
+    for name, path in stacks:
+        if _is_within(o_real, path.resolve()):
+            raise InputError(f"the report folder {out_dir} lies inside the stack {path}")
+        if name in (SUMMARY_CSV, SUMMARY_JSON, JUNIT_XML):
+            raise InputError(f"stack folder name {name!r} clashes with a batch output file")
+
+    board_obj = load_board(board)
+    board_sha256 = file_sha256(board)
+    on_dask = scheduler is not None or dask_workers is not None
+    pool_size = workers or (os.cpu_count() or 1)
+    if focus_config is None:
+        threads = 1 if on_dask else max(1, (os.cpu_count() or 1) // pool_size)
+        focus_config = FocusConfig(workers=threads)
+    if inspect_config is None:
+        inspect_config = InspectConfig()
+    focus_key = {k: v for k, v in focus_config.to_dict().items() if k not in _NEUTRAL_FOCUS_KEYS}
+    if not isinstance(inspect_fn, str) or ":" not in inspect_fn:
+        raise InputError(f"inspect_fn must be 'module:function'; got {inspect_fn!r}")
+    settings = {"smdinspect": __version__, "pipeline": inspect_fn, "focus": focus_key,
+                "inspect": inspect_config.to_dict(), "keep_unreliable": bool(keep_unreliable)}
+
+    out_dir.mkdir(parents=True, exist_ok=True)
+    with _locked(out_dir):
+        removed = clean_leftovers(out_dir)
+        if removed:
+            log.info("removed %d temporary folder(s) left by an interrupted batch", len(removed))
+        jobs = [
+            BoardJob(name=name, stack_dir=str(path.resolve()), out_dir=str(o_real / name),
+                     board=board_obj, board_sha256=board_sha256, settings=settings,
+                     focus_config=focus_config, inspect_config=inspect_config,
+                     keep_unreliable=bool(keep_unreliable), force=bool(force),
+                     inspect_fn=inspect_fn)
+            for name, path in stacks
+        ]
+        results: dict[str, BoardResult] = {}
+        total = len(jobs)
+
+        def on_result(res: BoardResult) -> None:
+            results[res.stack] = res
+            if res.status is BoardStatus.ERROR:
+                log.warning("%s: error (exit %d): %s", res.stack, res.exit_code, res.reason)
+            else:
+                log.debug("%s: %s%s in %.1f s", res.stack, res.status.value,
+                          " (skipped, unchanged)" if res.skipped else "", res.seconds)
+            if progress is not None:
+                progress(len(results), total)
+
+        if progress is not None:
+            progress(0, total)
+        if on_dask:
+            executor = run_dask(jobs, on_result=on_result, scheduler=scheduler,
+                                local_workers=dask_workers)
+        else:
+            run_local(jobs, workers=pool_size, on_result=on_result)
+            executor = f"process-pool({pool_size} workers)"
+
+        clean_leftovers(out_dir)  # folders of crashed workers
+        boards = tuple(results[j.name] if j.name in results else _lost(j) for j in jobs)
+        seconds = time.perf_counter() - t0
+        result = BatchResult(boards=boards, out_dir=out_dir, executor=executor,
+                             seconds=seconds, summary_csv=out_dir / SUMMARY_CSV,
+                             summary_json=out_dir / SUMMARY_JSON, junit=out_dir / JUNIT_XML)
+        counts = result.counts()
+        header = {
+            "format": "smdinspect-batch-summary",
+            "version": 1,
+            "smdinspect": __version__,
+            "stacks_dir": str(s_real),
+            "board_file": str(Path(board).resolve()),
+            "board_sha256": board_sha256,
+            "reports_dir": str(o_real),
+            "executor": executor,
+            "settings": settings,
+            "exit_code": result.exit_code,
+            "boards_total": total,
+            "counts": counts,
+            "seconds": round(seconds, 3),
+            "boards_per_minute": (None if math.isnan(result.boards_per_minute)
+                                  else round(result.boards_per_minute, 3)),
+        }
+        merge_junit(result.junit, boards)
+        write_summary_csv(result.summary_csv, boards)
+        write_summary_json(result.summary_json, boards, header)
+    return result
+
+
+def _lost(job: BoardJob) -> BoardResult:  # pragma: no cover - executors report every job
+    return BoardResult(stack=job.name, status=BoardStatus.ERROR, exit_code=2, joints=None,
+                       defects=None, unreliable=None, reason="no result came back",
+                       seconds=0.0, skipped=False, out_dir=job.out_dir)
+

@@ -1,0 +1,202 @@
+"""Where the boards run: a local process pool, or a Dask distributed cluster.
+
+Both take the same list of :class:`BoardJob` and call ``on_result`` once per job in
+completion order. The job function is :func:`smdinspect._batch._job.run_board`; no
+distribution logic of our own beyond handing jobs to the executor.
+"""
+
+from __future__ import annotations
+
+import collections
+import logging
+import multiprocessing
+import sys
+import uuid
+from concurrent.futures import FIRST_COMPLETED, Future, ProcessPoolExecutor, wait
+from concurrent.futures.process import BrokenProcessPool
+from typing import Callable, Sequence
+
+from ..errors import InputError
+from ._job import BoardJob, BoardResult, BoardStatus, record_error, run_board
+
+__all__ = ["run_dask", "run_local"]
+
+log = logging.getLogger(__name__)
+
+OnResult = Callable[[BoardResult], None]
+
+_CRASH_REASON = ("the worker process died while inspecting this board (crash or out of "
+                 "memory); it was retried alone and died again")
+
+
+def _crashed(job: BoardJob, reason: str) -> BoardResult:
+    """The result of a board whose worker never returned; its folder gets error.json."""
+    result = BoardResult(stack=job.name, status=BoardStatus.ERROR, exit_code=2, joints=None,
+                         defects=None, unreliable=None, reason=reason, seconds=0.0,
+                         skipped=False, out_dir=job.out_dir)
+    record_error(job, result)
+    return result
+
+
+def _init_worker() -> None:
+    """Pool-process initializer: die with the batch (Linux), so that a killed batch
+    leaves no orphan still writing reports."""
+    if sys.platform.startswith("linux"):
+        try:
+            import ctypes
+            import signal
+
+            libc = ctypes.CDLL(None, use_errno=True)
+            pr_set_pdeathsig = 1
+            libc.prctl(pr_set_pdeathsig, int(signal.SIGKILL), 0, 0, 0)
+        except (OSError, AttributeError):  # pragma: no cover - exotic libc
+            pass
+
+
+def run_local(jobs: Sequence[BoardJob], *, workers: int, on_result: OnResult) -> None:
+    """Run ``jobs`` in a ``concurrent.futures.ProcessPoolExecutor`` of ``workers``.
+
+    Processes are started with ``spawn`` (no fork of a threaded parent). At most
+    ``workers`` boards are in flight, so a crashed worker process (a segfault in a
+    decoder, the OOM killer) can only take those boards down: the pool is rebuilt and
+    each of them is retried alone; a board whose lone run crashes again is recorded as
+    an error and the batch goes on.
+    """
+    ctx = multiprocessing.get_context("spawn")
+    pending = collections.deque(jobs)
+    suspects: collections.deque[BoardJob] = collections.deque()
+    pool = ProcessPoolExecutor(max_workers=workers, mp_context=ctx, initializer=_init_worker)
+    inflight: dict[Future, tuple[BoardJob, bool]] = {}
+    try:
+        while pending or suspects or inflight:
+            if suspects:
+                if not inflight:  # a suspect runs alone
+                    job = suspects.popleft()
+                    inflight[pool.submit(run_board, job)] = (job, True)
+            else:
+                while pending and len(inflight) < workers:
+                    job = pending.popleft()
+                    inflight[pool.submit(run_board, job)] = (job, False)
+            done, _ = wait(list(inflight), return_when=FIRST_COMPLETED)
+            broken = False
+            for fut in done:
+                job, alone = inflight.pop(fut)
+                try:
+                    result = fut.result()
+                except BrokenProcessPool:
+                    broken = True
+                    if alone:
+                        on_result(_crashed(job, _CRASH_REASON))
+                    else:
+                        log.warning("a worker process died; retrying %s alone", job.name)
+                        suspects.append(job)
+                    continue
+                except Exception as exc:  # e.g. a result that cannot be unpickled
+                    result = _crashed(job, f"the worker failed: {type(exc).__name__}: {exc}")
+                on_result(result)
+            if broken:
+                # Every other in-flight future of the dead pool fails too: collect them.
+                for fut, (job, alone) in list(inflight.items()):
+                    try:
+                        result = fut.result()
+                    except BrokenProcessPool:
+                        if alone:
+                            on_result(_crashed(job, _CRASH_REASON))
+                        else:
+                            suspects.append(job)
+                        continue
+                    except Exception as exc:
+                        result = _crashed(job, f"the worker failed: {type(exc).__name__}: {exc}")
+                    on_result(result)
+                inflight.clear()
+                pool.shutdown(wait=True, cancel_futures=True)
+                pool = ProcessPoolExecutor(max_workers=workers, mp_context=ctx,
+                                           initializer=_init_worker)
+    finally:
+        pool.shutdown(wait=True, cancel_futures=True)
+
+
+def _worker_version() -> str:
+    """Runs on each Dask worker: the smdinspect version it imports."""
+    import smdinspect
+
+    return smdinspect.__version__
+
+
+def run_dask(jobs: Sequence[BoardJob], *, on_result: OnResult, scheduler: str | None = None,
+             local_workers: int | None = None, connect_timeout_s: float = 30.0) -> str:
+    """Run ``jobs`` on a Dask distributed cluster with ``client.submit`` / ``as_completed``.
+
+    Parameters
+    ----------
+    jobs : sequence of BoardJob
+    on_result : callable
+        Called with every :class:`BoardResult` as boards finish.
+    scheduler : str, optional
+        Address of an existing scheduler (``tcp://HOST:8786``). Its workers must import
+        the same smdinspect version (checked first) and see the same file system.
+    local_workers : int, optional
+        Instead: start a ``LocalCluster`` of this many single-threaded worker processes
+        on 127.0.0.1 (dashboard off) for the duration of the run.
+    connect_timeout_s : float
+        How long to wait for the scheduler and for a first worker.
+
+    Returns
+    -------
+    str
+        A description of the executor (for the summary).
+    """
+    try:
+        from distributed import Client, LocalCluster, as_completed
+    except ImportError as exc:  # pragma: no cover - dask[distributed] is a dependency
+        raise InputError(f"Dask is not installed ({exc}); pip install 'dask[distributed]'") from None
+    from .. import __version__
+
+    cluster = None
+    if local_workers is not None:
+        cluster = LocalCluster(n_workers=local_workers, threads_per_worker=1, processes=True,
+                               host="127.0.0.1", dashboard_address=None)
+        client = Client(cluster)
+        where = f"dask-local({local_workers} workers)"
+    else:
+        try:
+            client = Client(scheduler, timeout=f"{connect_timeout_s}s")
+        except (OSError, TimeoutError) as exc:
+            raise InputError(f"cannot connect to the Dask scheduler at {scheduler}: {exc}") from None
+        where = f"dask({scheduler})"
+    try:
+        try:
+            client.wait_for_workers(1, timeout=connect_timeout_s)
+        except TimeoutError:
+            raise InputError(f"no Dask worker joined {scheduler} within "
+                             f"{connect_timeout_s:g} s") from None
+        try:
+            versions = client.run(_worker_version)
+        except Exception as exc:
+            raise InputError("Dask workers cannot import smdinspect "
+                             f"({type(exc).__name__}: {exc}); install it in the workers' "
+                             "environment") from None
+        wrong = {w: v for w, v in versions.items() if v != __version__}
+        if wrong:
+            w, v = next(iter(wrong.items()))
+            raise InputError(f"Dask worker {w} runs smdinspect {v}, this client {__version__}; "
+                             "install the same version on every worker")
+        token = uuid.uuid4().hex[:8]
+        futures = {}
+        for job in jobs:
+            fut = client.submit(run_board, job, key=f"smdinspect-board-{job.name}-{token}",
+                                pure=False)
+            futures[fut] = job
+        for fut in as_completed(list(futures)):
+            job = futures[fut]
+            try:
+                result = fut.result()
+            except Exception as exc:  # KilledWorker, a lost worker, unpickling errors...
+                result = _crashed(job, f"the Dask task failed: {type(exc).__name__}: {exc}")
+            on_result(result)
+            fut.release()
+    finally:
+        client.close()
+        if cluster is not None:
+            cluster.close()
+    return where
