@@ -274,7 +274,9 @@ class FakeGrbl:
     def _receive(self, data: bytes) -> None:
         for byte in data:
             ch = chr(byte)
-            if self._silent:
+            if self._silent:  # hung: bytes arrive (and are recorded) but nothing happens
+                if ch in "!~\x18":
+                    self.realtime.append(ch)
                 continue
             if ch == "?":
                 self._report()
