@@ -18,6 +18,7 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 
+import cv2
 import numpy as np
 
 from ._config import FitMethod
@@ -58,6 +59,10 @@ class PeakTracker:
         self.ring: list[np.ndarray | None] = [None] * (2 * k + 1)
         self._better = np.empty(shape, bool)
         self._far = np.empty(shape, bool)
+        self._frame_no = np.empty(shape, np.int16)
+        self._scratch = np.empty(shape, np.float32)
+        self._zeros = np.zeros(shape, np.float32)
+        self._nans = np.full(shape, np.nan, np.float32)
 
     def update(self, n: int, focus: np.ndarray) -> np.ndarray:
         """Take frame ``n``'s focus measure; return the (H, W) bool mask of new bests.
@@ -66,11 +71,15 @@ class PeakTracker:
         """
         k, size = self.k, 2 * self.k + 1
         better = np.greater(focus, self.best, out=self._better)
-        np.copyto(self.best, focus, where=better)
-        np.copyto(self.best_idx, np.int16(n), where=better)
+        mask = better.view(np.uint8)
+        # cv2.copyTo with a mask is branch-free; numpy's where= is slow on noisy masks
+        np.maximum(self.best, focus, out=self.best)
+        self._frame_no.fill(n)
+        cv2.copyTo(self._frame_no, mask, self.best_idx)
         far = np.less(self.best_idx, n - k, out=self._far)
-        np.maximum(self.after, focus, out=self.after, where=far)
-        np.copyto(self.after, 0.0, where=better)
+        np.multiply(focus, far, out=self._scratch)
+        np.maximum(self.after, self._scratch, out=self.after)
+        cv2.copyTo(self._zeros, mask, self.after)
         leaving = self.ring[n % size]  # frame n - 2k - 1
         if leaving is not None:
             np.maximum(self.lagmax, leaving, out=self.lagmax)
@@ -83,22 +92,17 @@ class PeakTracker:
         """Copy the ±k window for pixels whose best frame is ``m`` (frames ≤ ``upto`` seen)."""
         if m < 0:
             return
-        idx = np.flatnonzero(self.best_idx == m)
-        if idx.size == 0:
-            return
+        mask = np.equal(self.best_idx, m, out=self._far).view(np.uint8)
         k, size = self.k, 2 * self.k + 1
-        before = self.lagmax.reshape(-1)[idx]
+        before = self.lagmax
         # frames between the ring's oldest and m - k - 1 (only at the end of the stack)
         for frame in range(max(0, upto - 2 * k), m - k):
-            before = np.maximum(before, self.ring[frame % size].reshape(-1)[idx])
-        self.before.reshape(-1)[idx] = before
+            before = np.maximum(before, self.ring[frame % size])
+        cv2.copyTo(before, mask, self.before)
         for j in range(size):
             frame = m - k + j
-            dst = self.window[j].reshape(-1)
-            if 0 <= frame <= upto:
-                dst[idx] = self.ring[frame % size].reshape(-1)[idx]
-            else:
-                dst[idx] = np.nan
+            src = self.ring[frame % size] if 0 <= frame <= upto else self._nans
+            cv2.copyTo(src, mask, self.window[j])
 
     def finish(self) -> None:
         """Settle the pixels whose best lies in the last k frames."""
@@ -141,22 +145,27 @@ def fit_peaks(tracker: PeakTracker, z_mm: np.ndarray, *, method: FitMethod) -> P
     z_mm = np.asarray(z_mm, dtype=np.float64)
     k = tracker.k
     n = len(z_mm)
-    kb = tracker.best_idx.astype(np.int64)
-    # z offsets of the window samples relative to the best frame, per pixel: (2k+1, H, W)
+    kb = tracker.best_idx
     z_pad = np.concatenate([np.full(k, np.nan), z_mm, np.full(k, np.nan)])
     z0 = z_mm[kb]
-    u = np.stack([(z_pad[kb + j] - z0) for j in range(2 * k + 1)]).astype(np.float32)
+    coarse = z0.astype(np.float32)
+
+    def u_at(j: int) -> np.ndarray:
+        """(H, W) float32: z of window sample j relative to the best frame (NaN outside)."""
+        return (np.take(z_pad, kb + j) - z0).astype(np.float32)
+
     w = tracker.window
-    f0 = w[k]
-    fm, fp = w[k - 1], w[k + 1]
+    f0, fm, fp = w[k], w[k - 1], w[k + 1]
+    um, up = u_at(k - 1), u_at(k + 1)
     on_edge = (kb == 0) | (kb == n - 1) | ~np.isfinite(fm) | ~np.isfinite(fp)
 
     with np.errstate(divide="ignore", invalid="ignore", over="ignore"):
         if method == FitMethod.LSQ:
+            u = np.stack([u_at(j) for j in range(2 * k + 1)])
             c, beta, l0 = _lsq_log_parabola(u, w)
+            del u
         else:
             lm, l0, lp = (np.log(np.maximum(x, _TINY)) for x in (fm, f0, fp))
-            um, up = u[k - 1], u[k + 1]
             c = ((lp - l0) / up - (l0 - lm) / (-um)) / (up - um)
             beta = (l0 - lm) / (-um) - c * um
         inverted = ~(c < 0)
@@ -164,21 +173,30 @@ def fit_peaks(tracker: PeakTracker, z_mm: np.ndarray, *, method: FitMethod) -> P
         sigma2 = -1.0 / (2 * c)
         log_peak = l0 - beta * beta / (4 * c)
         # A fitted peak outside the sampled neighbourhood is not trusted.
-        half_span = np.maximum(np.abs(u[k - 1]), np.abs(u[k + 1]))
-        wild = ~(np.abs(shift) <= half_span)
+        wild = ~(np.abs(shift) <= np.maximum(np.abs(um), np.abs(up)))
         bad = on_edge | inverted | wild
-        coarse = z0.astype(np.float32)
         if method == FitMethod.ARGMAX:
-            height = coarse.copy()
+            offset = np.zeros_like(coarse)
         else:
-            height = np.where(bad, coarse, (z0 + shift)).astype(np.float32)
+            offset = np.where(bad, 0.0, shift).astype(np.float32)
+        height = (z0 + offset).astype(np.float32)
         sigma = np.where(inverted | on_edge, np.nan, np.sqrt(sigma2)).astype(np.float32)
         f_peak = np.where(bad, f0, np.exp(np.minimum(log_peak, 80.0))).astype(np.float32)
-        # Pertuz's reliability over the 2k+1 samples (NaN samples skipped)
-        model = f_peak[None] * np.exp(-((u - (height - coarse)[None]) ** 2) / (2 * sigma2[None]))
-        resid = np.abs(w - model)
-        valid = np.isfinite(resid)
-        mean_res = np.where(valid, resid, 0).sum(0) / np.maximum(valid.sum(0), 1)
+        # Pertuz's reliability R over the 2k+1 samples (NaN samples skipped), and the
+        # lowest sample (for the prominence), one window row at a time.
+        res_sum = np.zeros_like(f0)
+        res_n = np.zeros_like(f0)
+        low = np.full_like(f0, np.inf)
+        inv_2s2 = (-0.5 / sigma2).astype(np.float32)
+        for j in range(2 * k + 1):
+            wj = w[j]
+            model = f_peak * np.exp((u_at(j) - offset) ** 2 * inv_2s2)
+            r = np.abs(wj - model)
+            ok = np.isfinite(r)
+            res_sum += np.where(ok, r, 0)
+            res_n += ok
+            np.fmin(low, wj, out=low)
+        mean_res = res_sum / np.maximum(res_n, 1)
         rel = 20.0 * np.log10(f_peak / np.maximum(mean_res, 1e-12 * np.maximum(f_peak, _TINY)))
         rel = np.where(bad, 0.0, rel).astype(np.float32)
         # The strongest focus more than k frames from the peak, less what the fitted peak
@@ -187,8 +205,7 @@ def fit_peaks(tracker: PeakTracker, z_mm: np.ndarray, *, method: FitMethod) -> P
         tail = np.where(inverted | on_edge, 0.0, np.exp(-((k + 0.5) * step) ** 2 / (2 * sigma2)))
         ambiguity = np.clip(tracker.alternative / np.maximum(tracker.best, _TINY) - tail,
                             0, 1).astype(np.float32)
-        prominence = np.clip(1.0 - np.nanmin(np.where(np.isfinite(w), w, np.inf), axis=0)
-                             / np.maximum(f0, _TINY), 0, 1).astype(np.float32)
+        prominence = np.clip(1.0 - low / np.maximum(f0, _TINY), 0, 1).astype(np.float32)
     return PeakFit(
         height_mm=height,
         coarse_mm=coarse,

@@ -112,7 +112,7 @@ def reconstruct(
                 image = FrameAligner.warp(image, transform)
                 focus = measure(image)
             better = tracker.update(i, focus)
-            np.copyto(aif, image, where=better[..., None] if image.ndim == 3 else better)
+            cv2.copyTo(image, better.view(np.uint8), aif)
             if progress is not None:
                 progress(i + 1, n)
     t_stream = time.perf_counter() - t0
