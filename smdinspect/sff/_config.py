@@ -34,7 +34,8 @@ class FocusConfig:
     window_px : int
         Odd side of the window U the focus measure is summed over.
     threshold : float
-        Nayar's ML threshold (``sml`` only): ML values below it count as 0.
+        Nayar's threshold: per-pixel responses below it count as 0 before the window
+        sum. Only for operators that sum a response (``FocusOperator(op).uses_threshold``).
     fit : FitMethod or str
         ``"gauss3"`` (default), ``"lsq"`` or ``"argmax"``.
     fit_half_width : int
@@ -76,6 +77,10 @@ class FocusConfig:
         if not (isinstance(self.threshold, (int, float)) and math.isfinite(self.threshold)
                 and self.threshold >= 0):
             raise InputError(f"threshold must be a finite number >= 0; got {self.threshold!r}")
+        from ._focus import FocusOperator
+
+        if self.threshold > 0 and not FocusOperator(self.operator).uses_threshold:
+            raise InputError(f"operator {self.operator!r} takes no threshold; got {self.threshold}")
         if not isinstance(self.fit_half_width, int) or not 1 <= self.fit_half_width <= 10:
             raise InputError(f"fit_half_width must be an integer in 1..10; got {self.fit_half_width!r}")
         if not (0.0 <= self.min_confidence <= 1.0):
