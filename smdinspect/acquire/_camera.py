@@ -282,14 +282,19 @@ class SimulatedCamera(Camera):
     ----------
     scene : smdinspect.synth.Scene
     optics : smdinspect.optics.Optics
+        Its object pixel must equal the scene's ``pixel_size_mm``.
     z_source : callable () -> float
-        Returns the focused-plane height ``z_mm`` now; the rig passes a function that
-        queries the stage and maps its reported machine z, so the frame shows what a
-        real camera would see where the stage actually is.
+        Returns the focused-plane height ``z_mm`` now. The rig passes a function that
+        queries the stage and maps the machine z it reports, so a frame shows what a real
+        camera would see where the stage actually is.
     sensor : smdinspect.synth.SensorConfig, optional
+        Default: the renderer's default (noisy) sensor.
     seed : int
-        Capture ``k`` of a sweep draws its noise from ``default_rng([seed, k])``, so a
-        resumed sweep renders exactly the frames an uninterrupted one would.
+        Noise seed. The first capture at a height ``z`` uses the renderer's per-frame
+        generator ``frame_rng(seed, z)``, so it is byte-identical to frame ``z`` of
+        ``render_stack(..., seed=seed)`` and to the same capture in a resumed sweep.
+        Further captures at the same height (``frames_per_step`` > 1) draw fresh noise
+        from ``default_rng([seed, round(z·1e6), repeat])``.
     """
 
     def __init__(self, scene: Any, *, optics: Any, z_source: Callable[[], float],
@@ -300,25 +305,27 @@ class SimulatedCamera(Camera):
             raise InputError(f"seed must be an integer >= 0; got {seed!r}")
         self.scene, self.optics, self.sensor = scene, optics, sensor
         self.z_source, self.seed = z_source, seed
-        self._next = 0
+        self._last_z_nm: int | None = None
+        self._repeat = 0
 
-    def seek(self, capture_index: int) -> None:
-        self._next = int(capture_index)
+    def render(self, z_mm: float, repeat: int = 0) -> np.ndarray:
+        """The frame of the ``repeat``-th capture (from 0) with the focus at ``z_mm``."""
+        from ..synth import render_frame
 
-    def render(self, z_mm: float, capture_index: int) -> np.ndarray:
-        """The frame capture ``capture_index`` shows with the focus at ``z_mm``."""
-        from ..synth import SensorConfig, render_frame
-
-        sensor = self.sensor if self.sensor is not None else SensorConfig()
-        rng = np.random.default_rng([self.seed, capture_index])
-        return render_frame(self.scene, float(z_mm), optics=self.optics, sensor=sensor, rng=rng)
+        z_nm = int(round(float(z_mm) * 1e6))
+        rng: Any = self.seed if repeat == 0 else np.random.default_rng(
+            [self.seed, abs(z_nm), int(z_nm < 0), repeat])
+        return render_frame(self.scene, float(z_mm), optics=self.optics, sensor=self.sensor,
+                            rng=rng)
 
     def capture(self) -> tuple[np.ndarray, dict[str, Any]]:
         z = float(self.z_source())
-        k = self._next
-        self._next += 1
-        frame = self.render(z, k)
-        return _check_frame(frame, "simulated camera"), {"z_rendered_mm": z, "capture_index": k}
+        z_nm = int(round(z * 1e6))
+        self._repeat = self._repeat + 1 if z_nm == self._last_z_nm else 0
+        self._last_z_nm = z_nm
+        frame = self.render(z, self._repeat)
+        return _check_frame(frame, "simulated camera"), {"z_rendered_mm": z,
+                                                          "repeat": self._repeat}
 
 
 # ---------------------------------------------------------------------------------------

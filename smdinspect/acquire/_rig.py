@@ -79,7 +79,7 @@ _CAMERA_KEYS = {
     CameraKind.OPENCV: {"device", "width", "height", "exposure", "gain", "grey",
                         "warmup_frames", "flush_frames"},
     CameraKind.FOLDER: {"path", "loop"},
-    CameraKind.SIMULATED: {"scene", "board", "defects", "seed", "shape", "scene_options",
+    CameraKind.SIMULATED: {"scene", "board", "defects", "seed", "scene_options",
                            "sensor"},
     CameraKind.GENICAM: {"cti", "serial_number", "exposure_us", "gain_db", "timeout_s"},
 }
@@ -357,10 +357,11 @@ class Rig:
         except BaseException:
             self.close()
             raise
-        if self.pixel_size_mm is None and c.optics:
-            self.pixel_size_mm = float(c.optics_model().pixel_size_mm)
-        if c.optics:
-            self.optics = c.optics_model().to_dict()
+        if c.camera.kind is not CameraKind.SIMULATED and c.optics:
+            model = c.optics_model()
+            self.optics = model.to_dict()
+            if self.pixel_size_mm is None:
+                self.pixel_size_mm = float(model.pixel_size_mm)
         return self
 
     def close(self) -> None:
@@ -386,7 +387,7 @@ class Rig:
     def focus_z_mm(self) -> float:
         """Focused-plane height now, from the machine z the stage reports."""
         assert self.stage is not None
-        return self.config.mapping.z_mm(self.stage.position())
+        return round(self.config.mapping.z_mm(self.stage.position()), 9)
 
     def _make_camera(self) -> Camera:
         c = self.config
@@ -405,14 +406,14 @@ class Rig:
         return self._make_simulated(o)
 
     def _make_simulated(self, o: dict[str, Any]) -> Camera:
-        from ._simulated import build_scene, build_sensor
+        from ._simulated import build_optics, build_scene, build_sensor
 
         c = self.config
-        scene = build_scene(o, resolve=c.resolve, optics=c.optics)
+        scene = build_scene(o, resolve=c.resolve)
+        optics = build_optics(c.optics, scene)
         sensor = build_sensor(o.get("sensor"))
-        if self.pixel_size_mm is None:
-            self.pixel_size_mm = float(scene.pixel_size_mm)
-        optics = c.optics_model()
+        self.pixel_size_mm = float(scene.pixel_size_mm)
+        self.optics = optics.to_dict()
         return SimulatedCamera(scene, optics=optics, sensor=sensor, seed=int(o.get("seed", 0)),
                                z_source=self.focus_z_mm)
 

@@ -365,7 +365,8 @@ class _Session:
         if sweep.settle_s > 0:
             time.sleep(sweep.settle_s)
         machine_z = stage.position()
-        z_mm = self.mapping.z_mm(machine_z)
+        # GRBL reports µm; rounding to 1e-9 mm only drops the float noise of the mapping
+        z_mm = round(self.mapping.z_mm(machine_z), 9)
         if writer.frames:
             prev = float(writer.frames[-1]["z_mm"])
             if (z_mm - prev) * sweep.sign <= 0:
