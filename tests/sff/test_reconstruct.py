@@ -1,0 +1,147 @@
+"""Shape from focus end to end on rendered stacks with known heights."""
+
+import subprocess
+import sys
+
+import cv2
+import numpy as np
+import pytest
+
+from smdinspect.errors import InputError
+from smdinspect.optics import Optics
+from smdinspect.sff import FitMethod, FocusConfig, reconstruct
+from smdinspect.stack import FocalStack, StackWriter
+from smdinspect.synth import (SensorConfig, cone_scene, half_textured_scene, render_frame,
+                              render_stack, staircase_scene)
+
+STEP = 0.05
+PIXEL = 0.015
+
+
+def _z(top_mm, step=STEP):
+    """Frames from below the base to above the top, offset so no true height sits on a frame."""
+    return np.round(np.arange(-0.1, top_mm + 0.1 + 1e-9, step) + 0.013, 6)
+
+
+@pytest.fixture(scope="module")
+def optics():
+    return Optics.for_pixel_size(PIXEL)
+
+
+@pytest.fixture(scope="module")
+def cone(tmp_path_factory, optics):
+    # 512 px: the flank rises 0.14 Δd per pixel, a slope SFF's 9 px window can follow
+    scene = cone_scene(size_px=512, pixel_size_mm=PIXEL, height_mm=1.6, seed=3)
+    root = tmp_path_factory.mktemp("cone")
+    stack = render_stack(scene, _z(1.6), optics=optics, seed=5, out=root, previews=False)
+    return scene, stack
+
+
+def _rmse_steps(surface, truth, mask):
+    err = (surface.height_mm - truth)[mask]
+    return float(np.sqrt(np.mean(err**2)) / STEP)
+
+
+def test_cone_gauss3_accuracy_and_interpolation_beats_argmax(cone):
+    scene, stack = cone
+    assert len(stack) >= 30
+    g3 = reconstruct(stack, FocusConfig(fit="gauss3"))
+    am = reconstruct(stack, FocusConfig(fit="argmax"))
+    mask = g3.reliable  # the same pixels for both
+    assert g3.coverage > 0.95
+    rmse_g3 = _rmse_steps(g3, scene.height_mm, mask)
+    rmse_am = _rmse_steps(am, scene.height_mm, mask)
+    assert rmse_g3 <= 0.10, rmse_g3
+    assert rmse_am > 1.5 * rmse_g3, (rmse_am, rmse_g3)
+
+
+def test_cone_lsq_fit_is_close(cone):
+    """Over ±3 frames the SML curve is not quite Gaussian: lsq is a little worse than gauss3."""
+    scene, stack = cone
+    s = reconstruct(stack, FocusConfig(fit=FitMethod.LSQ))
+    assert _rmse_steps(s, scene.height_mm, s.reliable) <= 0.15
+
+
+def test_staircase_terraces(tmp_path, optics):
+    scene = staircase_scene(size_px=160, pixel_size_mm=PIXEL, n_steps=4, step_mm=0.2, seed=1)
+    stack = render_stack(scene, _z(0.6), optics=optics, seed=2, out=tmp_path / "s", previews=False)
+    s = reconstruct(stack)
+    cols = np.arange(160)
+    for k in range(4):
+        # terrace interior, away from the risers (blur and window reach)
+        band = (cols >= k * 40 + 8) & (cols < (k + 1) * 40 - 8)
+        sel = s.reliable[:, band]
+        assert sel.mean() > 0.9
+        measured = float(np.median(s.height_mm[:, band][sel]))
+        assert abs(measured - 0.2 * k) <= 0.1 * STEP, (k, measured)
+
+
+def test_half_textured_confidence(tmp_path, optics):
+    scene = half_textured_scene(size_px=128, pixel_size_mm=PIXEL, seed=4)
+    stack = render_stack(scene, _z(float(scene.height_mm.max()) + 0.3), optics=optics, seed=1,
+                         out=tmp_path / "h", previews=False)
+    s = reconstruct(stack)
+    textured = scene.meta.get("textured_side", "left")
+    left, right = s.reliable[:, :54], s.reliable[:, 74:]
+    tex, flat = (left, right) if textured == "left" else (right, left)
+    assert tex.mean() > 0.9, tex.mean()
+    assert flat.mean() < 0.05, flat.mean()
+    assert s.confidence.min() >= 0 and s.confidence.max() <= 1
+
+
+def test_alignment_recovers_magnification_change(tmp_path, optics):
+    """0.2 % magnification change per frame: --align restores the accuracy."""
+    scene = cone_scene(size_px=192, pixel_size_mm=PIXEL, height_mm=1.2, seed=8)
+    z = _z(1.2)
+    w = StackWriter(tmp_path / "m", pixel_size_mm=PIXEL)
+    plain = StackWriter(tmp_path / "p", pixel_size_mm=PIXEL)
+    c = (192 - 1) / 2
+    for n, zn in enumerate(z):
+        frame = render_frame(scene, zn, optics=optics, sensor=SensorConfig(), rng=n)
+        plain.add_frame(frame, zn)
+        m = cv2.getRotationMatrix2D((c, c), 0.0, 1.0 + 0.002 * n)
+        w.add_frame(cv2.warpAffine(frame, m, (192, 192), flags=cv2.INTER_LINEAR,
+                                   borderMode=cv2.BORDER_REFLECT), zn)
+    ref = reconstruct(FocalStack.open(tmp_path / "p"))
+    raw = reconstruct(FocalStack.open(tmp_path / "m"))
+    aligned = reconstruct(FocalStack.open(tmp_path / "m"), FocusConfig(align=True))
+    # the focus ring of a cone moving outwards looks a little like zoom: allow 15 %
+    per_step = aligned.meta["alignment"]["scale_last_vs_first"] ** (1 / (len(z) - 1)) - 1
+    assert per_step == pytest.approx(0.002, rel=0.15)
+    mask = ref.reliable & aligned.reliable
+    assert aligned.coverage > 0.8
+    err_aligned = _rmse_steps(aligned, scene.height_mm, mask)
+    err_raw = _rmse_steps(raw, scene.height_mm, mask & raw.reliable)
+    assert err_aligned <= 1.5 * _rmse_steps(ref, scene.height_mm, mask) + 0.02
+    assert err_aligned < err_raw
+
+
+def test_colour_stack_keeps_colour_in_aif(tmp_path, optics):
+    scene = cone_scene(size_px=96, pixel_size_mm=PIXEL, height_mm=0.4, seed=1, color=True)
+    stack = render_stack(scene, _z(0.4), optics=optics, seed=1, out=tmp_path / "c", previews=False)
+    s = reconstruct(stack)
+    assert s.aif.shape == (96, 96, 3) and s.aif.dtype == np.uint8
+    assert np.abs(s.aif[..., 0].astype(int) - s.aif[..., 2]).mean() > 2
+
+
+def test_mismatched_frame_size_is_an_input_error(tmp_path):
+    w = StackWriter(tmp_path / "bad", pixel_size_mm=0.01)
+    rng = np.random.default_rng(0)
+    for i in range(3):
+        w.add_frame(rng.integers(0, 255, (32, 32 if i < 2 else 30), dtype=np.uint8), 0.1 * i)
+    with pytest.raises(InputError, match="frame_0002.png is 30x32 px .* all frames must match"):
+        reconstruct(FocalStack.open(tmp_path / "bad"))
+
+
+def test_window_larger_than_image(tmp_path):
+    w = StackWriter(tmp_path / "small", pixel_size_mm=0.01)
+    for i in range(3):
+        w.add_frame(np.zeros((8, 8), np.uint8), 0.1 * i)
+    with pytest.raises(InputError, match="window_px must be <= the frame's smaller side"):
+        reconstruct(FocalStack.open(tmp_path / "small"))
+
+
+def test_import_sff_does_not_load_open3d():
+    code = "import sys, smdinspect.sff; print('open3d' in sys.modules, 'trimesh' in sys.modules)"
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True)
+    assert out.stdout.split() == ["False", "False"]
