@@ -1,0 +1,118 @@
+"""`smdinspect reconstruct` end to end: outputs, formats and one-line errors."""
+
+import json
+
+import numpy as np
+import pytest
+import tifffile
+
+from smdinspect import _atomic
+from smdinspect.cli import main
+from smdinspect.optics import Optics
+from smdinspect.stack import StackWriter
+from smdinspect.synth import cone_scene, render_stack
+
+
+@pytest.fixture(scope="module")
+def cone_stack(tmp_path_factory):
+    scene = cone_scene(size_px=128, pixel_size_mm=0.015, height_mm=0.6, seed=2, color=True)
+    root = tmp_path_factory.mktemp("stack") / "cone"
+    z = np.round(np.arange(-0.1, 0.75, 0.05) + 0.013, 6)
+    render_stack(scene, z, optics=Optics.for_pixel_size(0.015), seed=1, out=root, previews=False)
+    return root, scene
+
+
+def test_outputs(cone_stack, tmp_path, capsys):
+    import open3d as o3d
+    import trimesh
+
+    root, scene = cone_stack
+    out = tmp_path / "out"
+    assert main(["-q", "reconstruct", str(root), "--out", str(out)]) == 0
+    assert "coverage" in capsys.readouterr().out
+    names = {p.name for p in out.iterdir()}
+    assert names == {"height_mm.tiff", "confidence.tiff", "aif.png", "height.png", "view3d.png",
+                     "cloud.ply", "mesh.ply", "mesh.stl", "summary.json"}
+    height = tifffile.imread(out / "height_mm.tiff")
+    conf = tifffile.imread(out / "confidence.tiff")
+    assert height.dtype == np.float32 and height.shape == (128, 128)
+    assert conf.dtype == np.float32 and 0 <= conf.min() and conf.max() <= 1
+    good = conf >= 0.5
+    assert np.median(np.abs(height - scene.height_mm)[good]) < 0.01
+    cloud = o3d.t.io.read_point_cloud(str(out / "cloud.ply"))
+    assert cloud.point.positions.shape[0] == int(good.sum())
+    assert "confidence" in cloud.point
+    assert cloud.point.confidence.numpy().min() >= 0.5
+    xyz = cloud.point.positions.numpy()
+    assert xyz[:, 0].max() <= 127 * 0.015 + 1e-5 and xyz[:, 2].max() < 0.7
+    mesh = trimesh.load(out / "mesh.stl")
+    assert len(mesh.faces) > 1000
+    summary = json.loads((out / "summary.json").read_text())
+    assert summary["coverage"] == pytest.approx(good.mean(), abs=1e-3)
+    assert summary["frames"] == 17 and summary["config"]["operator"] == "sml"
+    assert not [p for p in out.iterdir() if p.name.startswith(".")]
+
+
+def test_keep_unreliable_keeps_every_point(cone_stack, tmp_path):
+    import open3d as o3d
+
+    root, _ = cone_stack
+    out = tmp_path / "out"
+    assert main(["-q", "reconstruct", str(root), "--out", str(out), "--keep-unreliable"]) == 0
+    assert o3d.t.io.read_point_cloud(str(out / "cloud.ply")).point.positions.shape[0] == 128 * 128
+
+
+def test_image_list_with_step(cone_stack, tmp_path):
+    root, _ = cone_stack
+    frames = sorted(root.glob("frame_*.png"))
+    out = tmp_path / "out"
+    assert main(["-q", "reconstruct", *map(str, frames), "--step-mm", "0.05",
+                 "--pixel-size-mm", "0.015", "--out", str(out)]) == 0
+    summary = json.loads((out / "summary.json").read_text())
+    assert summary["z_range_mm"] == [0.0, pytest.approx(0.8)]
+
+
+def _small_stack(root, n=4, shape=(24, 24)):
+    w = StackWriter(root, pixel_size_mm=0.01)
+    rng = np.random.default_rng(0)
+    for i in range(n):
+        w.add_frame(rng.integers(0, 255, shape, dtype=np.uint8), 0.05 * i)
+    return root
+
+
+@pytest.mark.parametrize(
+    "make, extra, message",
+    [
+        (lambda r: _small_stack(r, n=2), [], "at least 3 frames"),
+        (lambda r: _small_stack(r), ["--window-px", "4"], "window_px must be an odd integer"),
+        (lambda r: _small_stack(r), ["--window-px", "31"], "window_px must be <="),
+        (lambda r: _small_stack(r), ["--operator", "nope"], None),  # argparse: exit 2
+        (lambda r: (_small_stack(r), (r / "frame_0002.png").write_bytes(b"\x89PNG\r\n\x1a\nxx")),
+         [], "truncated"),
+        (lambda r: (_small_stack(r), (r / "frame_0001.png").unlink()), [], "cannot read frame"),
+        (lambda r: (_small_stack(r), _atomic.write_image(r / "frame_0003.png",
+                                                         np.zeros((24, 24, 3), np.uint8))),
+         [], "all frames must match"),
+    ],
+)
+def test_bad_input_one_line_exit_2_nothing_written(tmp_path, capsys, make, extra, message):
+    root = tmp_path / "stack"
+    make(root)
+    out = tmp_path / "out"
+    if message is None:
+        with pytest.raises(SystemExit) as exc:
+            main(["reconstruct", str(root), "--out", str(out), *extra])
+        assert exc.value.code == 2
+        return
+    assert main(["-q", "reconstruct", str(root), "--out", str(out), *extra]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and err[0].startswith("smdinspect reconstruct: error:")
+    assert message in err[0]
+    assert not out.exists() or not any(out.iterdir())
+
+
+def test_list_without_step_is_an_error(cone_stack, tmp_path, capsys):
+    root, _ = cone_stack
+    frames = sorted(root.glob("frame_*.png"))
+    assert main(["reconstruct", *map(str, frames), "--out", str(tmp_path / "o")]) == 2
+    assert "--step-mm" in capsys.readouterr().err
