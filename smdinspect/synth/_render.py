@@ -200,8 +200,11 @@ class _Prepared:
         self.small = (max(1, math.ceil(ww / self.f)), max(1, math.ceil(hh / self.f)))
         self._fills: dict[int, np.ndarray] = {}
 
-    def fill(self, a: int) -> np.ndarray:
-        """Layer ``a``'s colour interpolated everywhere, ``(H, W, C)`` float32 (smooth)."""
+    def fill(self, a: int, box: tuple[int, int, int, int]) -> np.ndarray:
+        """Layer ``a``'s colour interpolated under everything, smooth, on the crop ``box``.
+
+        Returns ``(r1 - r0, c1 - c0, C)`` float32 for ``box = (r0, r1, c0, c1)``.
+        """
         import cv2
 
         small = self._fills.get(a)
@@ -212,8 +215,14 @@ class _Prepared:
             den = cv2.resize(near, self.small, interpolation=cv2.INTER_AREA)
             small = _push_pull(num, den, fallback=self.L.reshape(-1, self.C).mean(axis=0))
             self._fills[a] = small
+        r0, r1, c0, c1 = box
         hh, ww = self.h.shape
-        return _as_hwc(cv2.resize(small, (ww, hh), interpolation=cv2.INTER_LINEAR))
+        fx, fy = small.shape[1] / ww, small.shape[0] / hh
+        # dst pixel (x, y) of the crop samples the small image at the matching position
+        m = np.array([[fx, 0.0, (c0 + 0.5) * fx - 0.5], [0.0, fy, (r0 + 0.5) * fy - 0.5]])
+        return _as_hwc(cv2.warpAffine(small, m, (c1 - c0, r1 - r0),
+                                      flags=cv2.INTER_LINEAR | cv2.WARP_INVERSE_MAP,
+                                      borderMode=cv2.BORDER_REPLICATE))
 
 
 _CACHE: "weakref.WeakKeyDictionary[Scene, dict]" = weakref.WeakKeyDictionary()
@@ -329,7 +338,7 @@ def render_optical(
         near = hc < centres[b] + prep.jump_mm
         rad = prep.L[r0:r1, c0:c1]
         if not near.all():
-            hidden = prep.fill(a)[r0:r1, c0:c1] + prep.L_hf[r0:r1, c0:c1]
+            hidden = prep.fill(a, (r0, r1, c0, c1)) + prep.L_hf[r0:r1, c0:c1]
             rad = np.where(near[:, :, None], rad, hidden)
         layer = np.empty((r1 - r0, c1 - c0, C + 1), np.float32)
         layer[:, :, :C] = rad * cover[:, :, None]

@@ -1,0 +1,75 @@
+"""``smdinspect simulate``: writes a readable stack with its truth; refuses to overwrite."""
+
+import json
+
+import numpy as np
+import pytest
+
+from smdinspect.cli import main
+from smdinspect.stack import FocalStack
+from smdinspect._cli.simulate import sweep_heights
+
+
+def test_simulate_staircase_writes_a_stack_and_truth(tmp_path, capsys):
+    out = tmp_path / "stair"
+    rc = main(["-q", "simulate", "staircase", "--out", str(out), "--size", "64", "--seed", "3",
+               "--bit-depth", "16"])
+    assert rc == 0
+    stack = FocalStack.open(out)
+    h = np.load(out / "truth" / "height_mm.npy")
+    # frames cover the scene: 3 steps of 0.05 mm beyond its lowest and highest point
+    assert stack.z_mm[0] <= h.min() - 0.15 + 1e-9 and stack.z_mm[-1] >= h.max() + 0.15 - 1e-9
+    assert stack.step_mm == pytest.approx(0.05)
+    assert stack.pixel_size_mm == pytest.approx(0.015)
+    assert stack.read_frame(0).dtype == np.uint16
+    assert stack.meta["seed"] == 3 and stack.meta["scene"] == "staircase"
+    assert (out / "truth" / "height_mm.tiff").is_file()
+    assert "wrote" in capsys.readouterr().out
+
+
+def test_simulate_refuses_a_non_empty_out(tmp_path, capsys):
+    out = tmp_path / "s"
+    out.mkdir()
+    (out / "notes.txt").write_text("keep me")
+    rc = main(["-q", "simulate", "plane", "--out", str(out), "--size", "32"])
+    assert rc == 2
+    err = capsys.readouterr().err
+    assert "is not empty; pass --force" in err
+    assert not (out / "stack.json").exists()
+    rc = main(["-q", "simulate", "plane", "--out", str(out), "--size", "32", "--force",
+               "--frames", "5"])
+    assert rc == 0
+    assert len(FocalStack.open(out)) == 5
+    assert (out / "notes.txt").read_text() == "keep me"
+
+
+@pytest.mark.parametrize("argv, message", [
+    (["--z-range-mm", "1,0"], "--z-range-mm needs LO < HI"),
+    (["--z-range-mm", "a,b"], "--z-range-mm must be two numbers"),
+    (["--step-mm", "-0.1"], "--step-mm must be > 0"),
+    (["--defects", "R1.1:bridge"], "--defects is only for 'simulate board'"),
+    (["--frames", "2"], "--frames must be >= 3"),
+])
+def test_simulate_bad_arguments(tmp_path, capsys, argv, message):
+    rc = main(["-q", "simulate", "cone", "--out", str(tmp_path / "c"), "--size", "32", *argv])
+    assert rc == 2
+    assert message in capsys.readouterr().err
+
+
+def test_sweep_heights():
+    z = sweep_heights((0.0, 1.0), step_mm=0.1)
+    assert z[0] > z[-1]  # the camera moves down: h_n = d - (d_f + n*step)
+    np.testing.assert_allclose(np.diff(z), -0.1)
+    assert z[-1] <= -0.3 + 1e-9 and z[0] >= 1.3 - 1e-9
+    np.testing.assert_allclose(sweep_heights((0, 1), step_mm=0.05, z_range=(0.0, 0.5)),
+                               np.linspace(0.5, 0.0, 11))
+    assert len(sweep_heights((0, 1), step_mm=0.05, frames=40)) == 40
+
+
+def test_simulate_cone_has_about_forty_frames(tmp_path):
+    rc = main(["-q", "simulate", "cone", "--out", str(tmp_path / "c"), "--size", "48",
+               "--noise", "off"])
+    assert rc == 0
+    doc = json.loads((tmp_path / "c" / "stack.json").read_text())
+    assert 36 <= len(doc["frames"]) <= 42
+    assert doc["meta"]["sensor"]["read_noise_e"] == 0 and not doc["meta"]["sensor"]["shot_noise"]
