@@ -190,7 +190,7 @@ class GrblStage(Stage):
         deadline = time.monotonic() + wait_s
         while True:
             try:
-                line = self._readline(deadline, "the GRBL greeting")
+                line = self._readline(deadline, "the GRBL greeting", wait_s)
             except StageError as exc:
                 if "timed out" in str(exc):
                     return None
@@ -221,13 +221,12 @@ class GrblStage(Stage):
             raise StageError(f"lost the connection to the stage on {self._port} "
                              f"while writing: {exc}") from None
 
-    def _readline(self, deadline: float, what: str) -> str:
+    def _readline(self, deadline: float, what: str, timeout_s: float) -> str:
         """Next non-empty line, or StageError at ``deadline`` naming ``what``."""
         import serial
 
         if self._ser is None:
             raise StageError("the stage port is not open")
-        start = time.monotonic()
         while True:
             nl = self._buf.find(b"\n")
             if nl >= 0:
@@ -238,7 +237,7 @@ class GrblStage(Stage):
                 continue
             now = time.monotonic()
             if now >= deadline:
-                raise StageError(f"timed out after {deadline - start:.3g} s waiting for {what} "
+                raise StageError(f"timed out after {timeout_s:g} s waiting for {what} "
                                  f"from the stage on {self._port}")
             try:
                 chunk = self._ser.read(max(1, self._ser.in_waiting))
@@ -276,7 +275,7 @@ class GrblStage(Stage):
         deadline = time.monotonic() + timeout
         doing = f"running {line!r}"
         while True:
-            reply = self._readline(deadline, f"the reply to {line!r}")
+            reply = self._readline(deadline, f"the reply to {line!r}", timeout)
             log.debug("< %s", reply)
             if reply == "ok":
                 return
@@ -294,7 +293,8 @@ class GrblStage(Stage):
         self._write(b"?")
         deadline = time.monotonic() + self.config.timeout_s
         while True:
-            line = self._readline(deadline, "a status report (reply to '?')")
+            line = self._readline(deadline, "a status report (reply to '?')",
+                                 self.config.timeout_s)
             if line.startswith("<"):
                 status, self._wco = parse_status(line, wco=self._wco)
                 return status

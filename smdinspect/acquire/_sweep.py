@@ -28,7 +28,7 @@ from typing import Any, Callable
 
 import numpy as np
 
-from ..errors import CameraError, InputError, StageError
+from ..errors import CameraError, InputError, SmdInspectError, StageError
 from ._camera import Camera, capture_average
 from ._stage import Stage
 
@@ -338,9 +338,13 @@ class _Session:
                 if progress is not None:
                     progress(i + 1, total)
         except BaseException as exc:
-            log.warning("sweep stopped after %d of %d frames: %s", len(writer.frames), total,
-                        exc.__class__.__name__ if isinstance(exc, KeyboardInterrupt) else exc)
             stage.stop()
+            kept = len(writer.frames)
+            log.info("sweep stopped after %d of %d frames (%s); feed hold sent", kept, total,
+                     type(exc).__name__)
+            if isinstance(exc, SmdInspectError) and kept:
+                raise type(exc)(f"{exc} [{kept} of {total} frames kept in {writer.root}; "
+                                "fix the cause and run again with --resume]") from exc
             raise
         return self.finish(n_new=total - start, t0=t0)
 
