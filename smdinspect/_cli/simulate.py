@@ -165,13 +165,8 @@ def _build_scene(args: argparse.Namespace):
 
 
 def _board_scene(args: argparse.Namespace):
-    try:
-        from ..synth._board_scene import board_scene, parse_defects
-    except ModuleNotFoundError as exc:  # pragma: no cover - until the board scenes exist
-        if exc.name != "smdinspect.synth._board_scene":
-            raise
-        raise InputError("board scenes are not available in this build") from None
     from ..inspect import load_board
+    from ..synth import board_scene, parse_defects
 
     path = args.board
     if path is None:
@@ -179,7 +174,7 @@ def _board_scene(args: argparse.Namespace):
         if not path.is_file():
             raise InputError("no --board given and references/demo_board.json not found")
     board = load_board(path)
-    defects = parse_defects(args.defects) if args.defects else {}
+    defects = parse_defects(args.defects, board=board) if args.defects else {}
     offset = _pair(args.offset_mm, "--offset-mm")
     shape = None if args.size is None else (args.size, args.size)
     scene, labels = board_scene(board, defects=defects, pixel_size_mm=args.pixel_size_mm,

@@ -199,6 +199,7 @@ class _Prepared:
         self.f = max(1, min(8, min(hh, ww) // 16))
         self.small = (max(1, math.ceil(ww / self.f)), max(1, math.ceil(hh / self.f)))
         self._fills: dict[int, np.ndarray] = {}
+        self._mean = self.L.reshape(-1, self.C).mean(axis=0)
 
     def fill(self, a: int, box: tuple[int, int, int, int]) -> np.ndarray:
         """Layer ``a``'s colour interpolated under everything, smooth, on the crop ``box``.
@@ -213,7 +214,7 @@ class _Prepared:
             num = _as_hwc(cv2.resize(self.L * near[:, :, None], self.small,
                                      interpolation=cv2.INTER_AREA))
             den = cv2.resize(near, self.small, interpolation=cv2.INTER_AREA)
-            small = _push_pull(num, den, fallback=self.L.reshape(-1, self.C).mean(axis=0))
+            small = _push_pull(num, den, fallback=self._mean)
             self._fills[a] = small
         r0, r1, c0, c1 = box
         hh, ww = self.h.shape
@@ -334,7 +335,9 @@ def render_optical(
         r0, c0 = max(0, r0 - pad), max(0, c0 - pad)
         r1, c1 = min(hh, r1 + pad), min(ww, c1 + pad)
         hc = prep.h[r0:r1, c0:c1]
-        cover = np.clip((hc - centres[a]) / prep.t + 1.0, 0.0, 1.0).astype(np.float32)
+        cover = hc - np.float32(centres[a] - prep.t)
+        cover *= np.float32(1.0 / prep.t)
+        np.clip(cover, 0.0, 1.0, out=cover)
         near = hc < centres[b] + prep.jump_mm
         rad = prep.L[r0:r1, c0:c1]
         if not near.all():

@@ -1,6 +1,7 @@
 """``smdinspect simulate``: writes a readable stack with its truth; refuses to overwrite."""
 
 import json
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -8,6 +9,8 @@ import pytest
 from smdinspect.cli import main
 from smdinspect.stack import FocalStack
 from smdinspect._cli.simulate import sweep_heights
+
+DEMO = str(Path(__file__).resolve().parents[2] / "references" / "demo_board.json")
 
 
 def test_simulate_staircase_writes_a_stack_and_truth(tmp_path, capsys):
@@ -73,3 +76,33 @@ def test_simulate_cone_has_about_forty_frames(tmp_path):
     doc = json.loads((tmp_path / "c" / "stack.json").read_text())
     assert 36 <= len(doc["frames"]) <= 42
     assert doc["meta"]["sensor"]["read_noise_e"] == 0 and not doc["meta"]["sensor"]["shot_noise"]
+
+
+def test_simulate_board_writes_labels(tmp_path):
+    out = tmp_path / "b"
+    rc = main(["-q", "simulate", "board", "--board", DEMO,
+               "--defects", "R1.1:insufficient,U1.4:bridge", "--seed", "7",
+               "--pixel-size-mm", "0.05", "--step-mm", "0.25", "--offset-mm", "0.5,-0.25",
+               "--rotate-deg", "3", "--out", str(out)])
+    assert rc == 0
+    stack = FocalStack.open(out)
+    labels = json.loads((out / "truth" / "labels.json").read_text())
+    h = np.load(out / "truth" / "height_mm.npy")
+    assert list(h.shape) == labels["image_shape"] == list(stack.read_frame(0).shape[:2])
+    assert labels["placement"]["offset_mm"] == pytest.approx([0.5, -0.25])
+    assert labels["placement"]["rotate_deg"] == pytest.approx(3.0)
+    classes = {j["id"]: j["class"] for j in labels["joints"]}
+    assert classes["R1.1"] == "insufficient" and classes["U1.4"] == "bridge"
+    assert sum(c == "ok" for c in classes.values()) == len(classes) - 2
+    # the sweep runs from below the board to above the tallest part
+    assert stack.z_mm[0] < min(0.0, h.min()) and stack.z_mm[-1] > h.max()
+    scene_doc = json.loads((out / "truth" / "scene.json").read_text())
+    assert scene_doc["labels"] == "labels.json"
+
+
+def test_simulate_board_rejects_unknown_joint(tmp_path, capsys):
+    rc = main(["-q", "simulate", "board", "--board", DEMO,
+               "--defects", "Q9.1:bridge", "--out", str(tmp_path / "b")])
+    assert rc == 2
+    assert "Q9.1" in capsys.readouterr().err
+    assert not (tmp_path / "b").exists()
