@@ -66,6 +66,9 @@ _MLCC = np.array([0.60, 0.48, 0.32], np.float32)
 _MOULD = np.array([0.08, 0.08, 0.09], np.float32)
 _MOULD_MARK = np.array([0.24, 0.24, 0.24], np.float32)
 
+# Relative albedo texture of the solder mask per noise scale (fine 9 µm, med 40 µm,
+# coarse 0.5 mm): weak, as real mask, but enough for a focus measure most of the time.
+_MASK_TEX = dict(fine=0.07, med=0.05, coarse=0.05)
 _Z_MASK_TRACE = 0.018
 _Z_SILK = 0.012
 _Z_LAMINATE = -0.020
@@ -326,7 +329,7 @@ def _plan(board: Board, defects: dict[str, str], rng: np.random.Generator) -> di
             bridges[jid] = partner
             extra[jid]["bridge_to"] = partner
             extra[partner].setdefault("bridged_by", jid)
-            extra[jid]["bridge_height_mm"] = float(rng.uniform(0.0, 1.0))
+            extra[jid]["bridge_frac"] = float(rng.uniform(0.0, 1.0))
             extra[jid]["bridge_side"] = float(rng.choice([-1.0, 1.0]))
     return {"joint_cls": joint_cls, "comp": comp_state, "fillet": fillet, "extra": extra,
             "bridges": bridges, "rng": rng}
@@ -536,7 +539,7 @@ class _Canvas:
         rng = np.random.default_rng([self.seed, 0xB0A2D])
         # Solder mask everywhere (the board sits in a panel of the same mask).
         self.z[:] = 0.0015 * self.n_med
-        self.rgb[:] = self.colour(full, _MASK, fine=0.035, med=0.03, coarse=0.05)
+        self.rgb[:] = self.colour(full, _MASK, **_MASK_TEX)
         self.spec[:] = 0.12
 
         # Copper traces and tented vias under the mask: raised, lighter green. A trace
@@ -596,8 +599,7 @@ class _Canvas:
         tr_h = cv2.GaussianBlur(tr, (0, 0), max(0.02 / self.p, 0.5))
         self.z += _Z_MASK_TRACE * tr_h
         mix = tr[..., None]
-        self.rgb[:] = self.rgb * (1 - mix) + self.colour(full, _MASK_TRACE, fine=0.035,
-                                                         med=0.03, coarse=0.05) * mix
+        self.rgb[:] = self.rgb * (1 - mix) + self.colour(full, _MASK_TRACE, **_MASK_TEX) * mix
         drill = np.zeros(self.shape, np.uint8)
         for v in vias:
             self.fill_poly(drill, _circle(v, 0.1), 255)
@@ -865,7 +867,7 @@ def _draw_chip(ctx: _Ctx) -> None:
             side = ex["bridge_side"]
             qc = side * (hw + 0.03)
             half = 0.13
-            hb = 0.12 + 0.08 * ex["bridge_height_mm"]
+            hb = 0.12 + 0.08 * ex["bridge_frac"]
             uu = u if axis == 0 else v
             vv = v if axis == 0 else u
             taper = np.clip((hl + 0.15 - np.abs(uu)) / 0.15, 0, 1)
@@ -997,7 +999,7 @@ def _draw_gullwing(ctx: _Ctx) -> None:
             dq = p_q0 - q0 if (p_axis, p_sign) == (axis, sign) else 0.0
             wc = (w_h + toe) / 2
             half = min(0.3, lead["foot_length_mm"] / 2)
-            hb = G + T + 0.02 + 0.06 * ex["bridge_height_mm"]
+            hb = G + T + 0.02 + 0.06 * ex["bridge_frac"]
             qa, qb = min(0.0, dq), max(0.0, dq)
             along = np.clip(np.minimum(q - qa, qb - q) / 0.05 + 1, 0, 1)
             mid = (qa + qb) / 2

@@ -123,6 +123,7 @@ def test_round_trip(tmp_path):
         p = _write(tmp_path, json.loads(json.dumps(d)), f"{name}.json")
         b2 = load_board(p)
         assert b2.to_dict() == d
+        assert board_from_dict(d, source="mem").to_dict() == d
         for j, j2 in zip(b.joints(), b2.joints()):
             np.testing.assert_allclose(j.polygon_mm, j2.polygon_mm, atol=1e-12)
             assert j.max_height_mm == j2.max_height_mm

@@ -114,7 +114,7 @@ def test_textures_weak_mask_grainy_solder(demo, ok_scene):
     assert bare.mean() > 0.3
     rel_mask = fine[bare].std() / lum[bare].mean()
     rel_solder = fine[solder].std() / lum[solder].mean()
-    assert 0.005 < rel_mask < 0.06          # weakly textured, not flat
+    assert 0.02 < rel_mask < 0.12           # weakly textured, not flat
     assert rel_solder > 2 * rel_mask         # solder grain is what SFF locks onto
     assert scene.specular[solder].mean() > 0.6 > np.median(scene.specular[bare]) + 0.3
 
