@@ -27,6 +27,11 @@ How a frame is made (:func:`render_optical`, then :func:`render_frame`):
 The sensor (:class:`SensorConfig`) then adds per-frame illumination flicker, sub-pixel
 jitter, shot and read noise, clipping at full well, and 8/16-bit quantisation.
 
+Not modelled: cast shadows, inter-reflections, diffraction beyond ``Optics.sigma0_px``,
+and the change of viewing direction across the field of an ordinary lens (glints are
+computed for a camera looking straight down). Shot noise is Gaussian with variance equal
+to the electron count (Poisson-like; accurate above a few tens of electrons).
+
 Determinism: every random draw of a frame comes from ``frame_rng(seed, z_mm)``, a
 generator seeded by the stack seed and the frame's focus height in nanometres, so one
 frame rendered on its own (the simulated camera of :mod:`smdinspect.acquire`) is
