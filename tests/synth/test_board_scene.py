@@ -321,3 +321,45 @@ def test_parse_defects(demo):
     assert set(DEFECTS) == {"ok", "missing", "insufficient", "excess", "bridge",
                             "lifted_lead", "tombstone", "component_missing",
                             "component_shifted"}
+
+
+def test_custom_geometry_polygon_pads_and_unknown_package():
+    from smdinspect.inspect._board import board_from_dict
+
+    data = {
+        "schema": "smdinspect-board", "version": 1, "name": "custom", "units": "mm",
+        "size_mm": [6.0, 4.0], "thickness_mm": 1.0,
+        "components": [
+            {"ref": "R1", "package": "0805", "x_mm": 1.6, "y_mm": 2.0, "rotation_deg": 0.0,
+             "pads": [
+                 {"number": "1", "polygon_mm": [[-1.45, -0.7], [-0.45, -0.7], [-0.45, 0.7],
+                                                [-1.2, 0.7], [-1.45, 0.45]]},
+                 {"number": "2", "x_mm": 0.95, "y_mm": 0.0, "length_mm": 1.0,
+                  "width_mm": 1.4}]},
+            {"ref": "Q1", "package": "SOT-X", "kind": "gullwing", "x_mm": 4.4, "y_mm": 2.0,
+             "rotation_deg": 30.0,
+             "body": {"length_mm": 1.6, "width_mm": 1.2, "height_mm": 0.9,
+                      "standoff_mm": 0.05},
+             "lead": {"width_mm": 0.3, "thickness_mm": 0.12, "foot_length_mm": 0.35,
+                      "span_mm": 2.4, "exit_height_mm": 0.45},
+             "pads": [{"number": "1", "x_mm": -0.5, "y_mm": -1.05, "length_mm": 0.7,
+                       "width_mm": 0.45},
+                      {"number": "2", "x_mm": 0.5, "y_mm": -1.05, "length_mm": 0.7,
+                       "width_mm": 0.45},
+                      {"number": "3", "x_mm": 0.0, "y_mm": 1.05, "length_mm": 0.7,
+                       "width_mm": 0.45}]},
+        ],
+    }
+    board = board_from_dict(data, source="custom")
+    scene, lab = board_scene(board, pixel_size_mm=0.02, offset_mm=(0, 0), rotate_deg=0,
+                             seed=2, defects={"Q1.3": "excess", "Q1.1": "bridge"})
+    by_id = {e["id"]: e for e in lab["joints"]}
+    for j in board.joints():
+        e = by_id[j.id]
+        if e["class"] == "excess":
+            assert e["true_height_mm"] > j.max_height_mm
+        else:
+            assert j.min_height_mm < e["true_height_mm"] < j.max_height_mm, j.id
+    assert by_id["Q1.1"]["bridge_to"] == "Q1.2"
+    top = _h_at(scene, lab, [4.4, 2.0])
+    assert top == pytest.approx(0.9, abs=0.03)
