@@ -18,6 +18,14 @@ Four cues, each mapped to [0, 1] by a smooth ramp and multiplied:
   edge of a taller part bleeding over low texture) gives a large A. Ramp from 1 at
   A = 0.35 to 0 at 0.7.
 
+Finally, **depth edges**: a focus window that straddles a height step mixes two depths,
+and the sharp edge of the higher part (a component body) wins over the weak texture of
+the lower one (solder mask), so a band of lower pixels takes the higher height. No focus
+curve shows this, so :func:`depth_edge_mask` looks for it in the result: pixels within
+half a window of a place where the reliable heights in a 5 × 5 square differ by more
+than ``edge_jump_steps`` frame steps (default 3) are made unreliable, on both sides of
+the step. A fillet at 45° rises about one step over those five pixels.
+
 Pixels whose peak lies on the first or last frame, or whose fit is inverted (σ² ≤ 0)
 or lands outside its neighbours, get confidence 0. The default reliability threshold
 on the product is 0.5 (``FocusConfig.min_confidence``).
@@ -29,7 +37,7 @@ import numpy as np
 
 from ._depth import PeakFit
 
-__all__ = ["confidence_map"]
+__all__ = ["confidence_map", "depth_edge_mask"]
 
 R_LOW_DB, R_HIGH_DB = 14.0, 26.0
 WIDTH_OK, WIDTH_BAD = 2.0, 4.0
@@ -68,3 +76,25 @@ def confidence_map(fit: PeakFit) -> np.ndarray:
     conf = (c_r * c_w * c_a * c_p).astype(np.float32)
     conf[~fit.interior] = 0.0
     return conf
+
+
+def depth_edge_mask(height_mm: np.ndarray, reliable: np.ndarray, *, jump_mm: float,
+                    radius_px: int, span_px: int = 5) -> np.ndarray:
+    """(H, W) bool: pixels within ``radius_px`` of a height step.
+
+    A step is where the reliable heights inside a ``span_px`` square differ by more than
+    ``jump_mm`` (a measured step is smeared over a few pixels, so neighbours alone miss
+    it).
+    """
+    import cv2
+
+    k = np.ones((span_px, span_px), np.uint8)
+    h = height_mm.astype(np.float32)
+    hi = cv2.dilate(np.where(reliable, h, -np.inf).astype(np.float32), k)
+    lo = cv2.erode(np.where(reliable, h, np.inf).astype(np.float32), k)
+    with np.errstate(invalid="ignore", over="ignore"):
+        step = reliable & ((hi - lo) > jump_mm)
+    if radius_px > 0 and step.any():
+        disk = cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (2 * radius_px + 1, 2 * radius_px + 1))
+        step = cv2.dilate(step.view(np.uint8), disk).astype(bool)
+    return step

@@ -44,6 +44,10 @@ class FocusConfig:
     min_confidence : float
         Pixels with confidence below this are unreliable (default 0.5; see
         :func:`smdinspect.sff.confidence_map`).
+    edge_jump_steps : float
+        Pixels within half a window of a height step of more than this many frame steps
+        (within 5 × 5 reliable pixels) are unreliable: a window straddling a step takes
+        the sharper, higher side's height. 0 turns the check off. Default 3.
     align : bool
         Register every frame to the middle frame (scale, rotation, translation) before
         measuring focus; needed for ordinary (non-telecentric) lenses.
@@ -57,6 +61,7 @@ class FocusConfig:
     fit: FitMethod = FitMethod.GAUSS3
     fit_half_width: int = 3
     min_confidence: float = 0.5
+    edge_jump_steps: float = 3.0
     align: bool = False
     workers: int = 2
 
@@ -85,6 +90,8 @@ class FocusConfig:
             raise InputError(f"fit_half_width must be an integer in 1..10; got {self.fit_half_width!r}")
         if not (0.0 <= self.min_confidence <= 1.0):
             raise InputError(f"min_confidence must be in [0, 1]; got {self.min_confidence!r}")
+        if not (isinstance(self.edge_jump_steps, (int, float)) and self.edge_jump_steps >= 0):
+            raise InputError(f"edge_jump_steps must be >= 0; got {self.edge_jump_steps!r}")
         if not isinstance(self.workers, int) or self.workers < 1:
             raise InputError(f"workers must be an integer >= 1; got {self.workers!r}")
 

@@ -15,7 +15,7 @@ from ..errors import InputError
 from ..stack import FocalStack
 from ._align import FrameAligner
 from ._config import FitMethod, FocusConfig
-from ._confidence import confidence_map
+from ._confidence import confidence_map, depth_edge_mask
 from ._depth import PeakTracker, fit_peaks
 from ._focus import focus_measure
 from ._surface import Surface
@@ -129,6 +129,11 @@ def reconstruct(
             "scale_last_vs_first": float(np.sqrt(abs(np.linalg.det(aligner.transforms[-1][:2, :2])))),
             "transforms": [a.tolist() for a in aligner.transforms],
         }
+    if config.edge_jump_steps > 0:
+        edges = depth_edge_mask(fit.height_mm, confidence >= config.min_confidence,
+                                jump_mm=config.edge_jump_steps * stack.step_mm,
+                                radius_px=config.window_px // 2 + 1)
+        confidence[edges] = 0.0
     reliable = confidence >= config.min_confidence
     if config.fit == FitMethod.ARGMAX:
         height = fit.coarse_mm
