@@ -60,6 +60,12 @@ ALARM_MEANINGS = {
     9: "homing fail: limit switch not found within the search distance",
 }
 
+try:  # a POSIX port whose device vanished fails in tcdrain() with termios.error
+    from termios import error as _TermiosError
+except ImportError:  # pragma: no cover - Windows
+    class _TermiosError(Exception):  # type: ignore[no-redef]
+        pass
+
 _GREETING = re.compile(r"^Grbl(?:HAL)?\s+(\S+)", re.IGNORECASE)
 _CODE = re.compile(r"^(error|ALARM):\s*(\d+)", re.IGNORECASE)
 
@@ -151,7 +157,7 @@ class GrblStage(Stage):
                 self._port, baudrate=c.baud, timeout=0.05, write_timeout=c.timeout_s,
                 exclusive=True,
             )
-        except (serial.SerialException, OSError, ValueError) as exc:
+        except (serial.SerialException, OSError, ValueError, _TermiosError) as exc:
             raise StageError(_open_error(self._port, exc)) from None
         try:
             self._connect()
@@ -217,7 +223,7 @@ class GrblStage(Stage):
         try:
             self._ser.write(data)
             self._ser.flush()
-        except (serial.SerialException, OSError) as exc:
+        except (serial.SerialException, OSError, _TermiosError) as exc:
             raise StageError(f"lost the connection to the stage on {self._port} "
                              f"while writing: {exc}") from None
 
@@ -241,7 +247,7 @@ class GrblStage(Stage):
                                  f"from the stage on {self._port}")
             try:
                 chunk = self._ser.read(max(1, self._ser.in_waiting))
-            except (serial.SerialException, OSError) as exc:
+            except (serial.SerialException, OSError, _TermiosError) as exc:
                 raise StageError(f"lost the connection to the stage on {self._port} while "
                                  f"waiting for {what}: {exc}") from None
             self._buf += chunk

@@ -224,7 +224,8 @@ def run_sweep(
 
 
 # ---------------------------------------------------------------------------------------
-_STRAY = re.compile(r"^(?:\.frame_\d+\..*|frame_(\d+)\.(?:png|tiff))$")
+# temp files of an interrupted atomic write (frame or manifest), and frame files
+_STRAY = re.compile(r"^(?:\.frame_\d+\..+|\.stack\..+\.json|frame_(\d+)\.(?:png|tiff))$")
 
 
 class _Session:

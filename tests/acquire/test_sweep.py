@@ -236,10 +236,11 @@ def test_resume_rules(fake, frames_dir, tmp_path):
     assert len(fake.moves) == n_moves  # refused before moving
     # a leftover temp file and an unlisted frame from a killed run are cleaned up
     (out / ".frame_0002.abc123.png").write_bytes(b"\x89PNG partial")
+    (out / ".stack.k2j4h5.json").write_text('{"frames": [')
     (out / "frame_0002.png").write_bytes((out / "frame_0000.png").read_bytes())
     res = sweep_with(fake, out, frames_dir, resume=True)
     assert res.complete and res.n_new == 9
-    assert not (out / ".frame_0002.abc123.png").exists()
+    assert not [p.name for p in out.iterdir() if p.name.startswith(".")]
     # resuming a complete stack does nothing
     res = sweep_with(fake, out, frames_dir, resume=True)
     assert res.n_new == 0 and res.n_frames == 11
