@@ -23,8 +23,10 @@ and the sharp edge of the higher part (a component body) wins over the weak text
 the lower one (solder mask), so a band of lower pixels takes the higher height. No focus
 curve shows this, so :func:`depth_edge_mask` looks for it in the result: pixels within
 half a window of a place where the reliable heights in a 5 × 5 square differ by more
-than ``edge_jump_steps`` frame steps (default 3) are made unreliable, on both sides of
-the step. A fillet at 45° rises about one step over those five pixels.
+than ``edge_jump_steps`` frame steps (default 3), and on its high side (in the upper
+half of the local height range), are made unreliable. The low side keeps its depths: a
+fillet at the foot of a termination is measured, the termination's rim is not. A
+fillet at 45° rises about one step over five pixels, far from a step.
 
 Pixels whose peak lies on the first or last frame, or whose fit is inverted (σ² ≤ 0)
 or lands outside its neighbours, get confidence 0. The default reliability threshold
@@ -80,21 +82,26 @@ def confidence_map(fit: PeakFit) -> np.ndarray:
 
 def depth_edge_mask(height_mm: np.ndarray, reliable: np.ndarray, *, jump_mm: float,
                     radius_px: int, span_px: int = 5) -> np.ndarray:
-    """(H, W) bool: pixels within ``radius_px`` of a height step.
+    """(H, W) bool: pixels on the high side of a height step, within ``radius_px`` of it.
 
     A step is where the reliable heights inside a ``span_px`` square differ by more than
     ``jump_mm`` (a measured step is smeared over a few pixels, so neighbours alone miss
-    it).
+    it). Bleeding makes low pixels next to a step take the *high* side's height, so only
+    pixels in the upper half of the local height range (within ``radius_px``) are
+    flagged; the correctly measured low side (a fillet at the foot of a termination)
+    stays.
     """
     import cv2
 
-    k = np.ones((span_px, span_px), np.uint8)
     h = height_mm.astype(np.float32)
-    hi = cv2.dilate(np.where(reliable, h, -np.inf).astype(np.float32), k)
-    lo = cv2.erode(np.where(reliable, h, np.inf).astype(np.float32), k)
+    up = np.where(reliable, h, -np.inf).astype(np.float32)
+    down = np.where(reliable, h, np.inf).astype(np.float32)
+    square = np.ones((span_px, span_px), np.uint8)
     with np.errstate(invalid="ignore", over="ignore"):
-        step = reliable & ((hi - lo) > jump_mm)
-    if radius_px > 0 and step.any():
+        step = reliable & ((cv2.dilate(up, square) - cv2.erode(down, square)) > jump_mm)
+        if radius_px <= 0 or not step.any():
+            return step
         disk = cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (2 * radius_px + 1, 2 * radius_px + 1))
-        step = cv2.dilate(step.view(np.uint8), disk).astype(bool)
-    return step
+        near = cv2.dilate(step.view(np.uint8), disk).astype(bool)
+        middle = 0.5 * (cv2.dilate(up, disk) + cv2.erode(down, disk))
+        return near & (h > middle)
