@@ -42,7 +42,7 @@ log = logging.getLogger(__name__)
 #: Written last into a board's report folder; its presence (with a matching input
 #: fingerprint and intact outputs) is what "this board is done" means.
 DONE_MARKER = "batch-done.json"
-#: Written instead of the reports when a board fails.
+#: Written into the report folder of a board that failed (no done-marker then).
 ERROR_FILE = "error.json"
 MARKER_FORMAT = "smdinspect-batch-done"
 MARKER_VERSION = 1
@@ -153,7 +153,8 @@ def run_board(job: BoardJob) -> BoardResult:
     :func:`smdinspect.pipeline.inspect_stack` into a temporary sibling folder, writes
     the done-marker last, and renames the folder into place, so the report folder is
     either the complete old one or the complete new one. A board that fails gets a
-    folder holding only ``error.json``.
+    folder with ``error.json`` (next to whatever the pipeline wrote before failing,
+    e.g. the reconstruction and a ``not_located`` report.json) and no done-marker.
     """
     t0 = time.perf_counter()
     out_dir = Path(job.out_dir)
@@ -199,13 +200,10 @@ def _inspect_into(job: BoardJob, tmp: Path, t0: float, digest: str) -> BoardResu
                             inspect_config=job.inspect_config,
                             keep_unreliable=job.keep_unreliable)
     except SmdInspectError as exc:
-        _clear(tmp)
         return _error(job, t0, exc.exit_code, str(exc), digest=digest)
     except MemoryError:
-        _clear(tmp)
         return _error(job, t0, 2, "out of memory while inspecting this board", digest=digest)
     except Exception as exc:  # a bug or an unexpected library error: this board only
-        _clear(tmp)
         log.debug("board %s crashed", job.name, exc_info=True)
         return _error(job, t0, 2, f"internal error: {type(exc).__name__}: {exc}",
                       digest=digest, detail=traceback.format_exc())
@@ -243,15 +241,6 @@ def _error(job: BoardJob, t0: float, exit_code: int, reason: str, *, digest: str
                        joints=None, defects=None, unreliable=None, reason=reason,
                        seconds=time.perf_counter() - t0, skipped=False, out_dir=job.out_dir,
                        input_sha256=digest, detail=detail)
-
-
-def _clear(folder: Path) -> None:
-    """Remove whatever a failed pipeline left in ``folder`` (not the folder)."""
-    for p in folder.iterdir():
-        if p.is_dir() and not p.is_symlink():
-            shutil.rmtree(p, ignore_errors=True)
-        else:
-            p.unlink(missing_ok=True)
 
 
 def _utc_now() -> str:

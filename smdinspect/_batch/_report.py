@@ -60,6 +60,8 @@ def _board_suite(result: BoardResult) -> ET.Element:
         try:
             root = ET.parse(path).getroot()
             cases = list(root.iter("testcase"))
+            for prop in root.iter("property"):  # the board's own facts (registration...)
+                props.append(prop)
         except (OSError, ET.ParseError) as exc:
             case = ET.Element("testcase", classname=result.stack, name="junit.xml")
             ET.SubElement(case, "error", message=f"cannot read {path}: {exc}")

@@ -23,10 +23,11 @@ def register(sub: argparse._SubParsersAction) -> None:
 
     p = sub.add_parser(
         "batch", help="inspect every stack under a folder (process pool or Dask cluster)",
-        description="Inspect every stack directory (a folder holding stack.json) under "
-                    "STACKS_DIR against one reference board. Each board's reports go to "
-                    "REPORTS_DIR/<stack path>/; summary.csv, summary.json and one merged "
-                    "junit.xml go to REPORTS_DIR.",
+        description="Inspect every stack directory (a folder holding stack.json) under\n"
+                    "STACKS_DIR against one reference board. Each board's reports go to\n"
+                    "REPORTS_DIR/<stack path>/; summary.csv, summary.json and one merged\n"
+                    "junit.xml go to REPORTS_DIR. Boards run in a local process pool, or on\n"
+                    "a Dask cluster with --scheduler / --dask-local.",
         epilog=_EPILOG, formatter_class=argparse.RawDescriptionHelpFormatter)
     p.add_argument("stacks_dir", type=Path, metavar="STACKS_DIR",
                    help="folder searched recursively for stack directories")

@@ -38,7 +38,7 @@ def run(args: argparse.Namespace) -> int:
     result = res.inspection
     truth = {j["id"]: j["class"] for j in res.labels["joints"]}
     joints = result.joints
-    found = {j.id: j.verdict for j in joints}
+    found = {j.id: getattr(j.verdict, "value", j.verdict) for j in joints}
     injected = {k: v for k, v in truth.items() if v != "ok"}
     hits = sum(found.get(k) == v for k, v in injected.items())
     false_calls = [k for k, v in found.items() if truth.get(k) == "ok" and v not in ("ok", "unreliable")]

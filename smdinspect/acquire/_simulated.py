@@ -76,7 +76,7 @@ def _board_scene(options: dict[str, Any], kwargs: dict[str, Any], resolve) -> An
     if not isinstance(defects, str):
         raise InputError(f"[camera] defects must be a string like \"R3.1:insufficient\"; "
                          f"got {defects!r}")
-    parsed = parse_defects(defects) if defects else {}
+    parsed = parse_defects(defects, board=board) if defects else {}
     if "shape" in kwargs and isinstance(kwargs["shape"], list):
         kwargs["shape"] = tuple(kwargs["shape"])
     for key in ("offset_mm",):

@@ -19,7 +19,7 @@ import numpy as np
 
 from ._geometry import apply2d, polygon_mask, world_to_pixel
 
-__all__ = ["Prism", "reference_mesh", "reference_points", "reference_prisms", "render_reference"]
+__all__ = ["Prism", "body_top_mm", "reference_mesh", "reference_points", "reference_prisms", "render_reference"]
 
 log = logging.getLogger(__name__)
 
@@ -42,6 +42,19 @@ class Prism:
     @property
     def max_top_mm(self) -> float:
         return float(self.top_at(self.polygon_mm).max())
+
+
+def body_top_mm(comp) -> float:
+    """Height of a component's body top above the board (mm).
+
+    Chips: ``standoff_mm + body_height_mm`` (the body sits on the solder layer G).
+    Gull-wing packages: ``body_height_mm`` is the package's total height above the
+    board (JEDEC "A"; the mould starts ``standoff_mm`` above the board), as the shipped
+    board files and the board simulator use it.
+    """
+    if comp.kind == "gullwing":
+        return float(comp.body_height_mm)
+    return float(comp.standoff_mm + comp.body_height_mm)
 
 
 def _ramp(polygon: np.ndarray, p0: np.ndarray, direction: np.ndarray, z0: float,
@@ -72,7 +85,7 @@ def reference_prisms(board, *, fillets: bool = True, slab: bool = False) -> list
         prisms.append(Prism("board", "", np.array([[0, 0], [w, 0], [w, h], [0, h]], float),
                             (0.0, 0.0, 0.0), -float(board.thickness_mm)))
     for comp in board.components:
-        top = float(comp.standoff_mm + comp.body_height_mm)
+        top = body_top_mm(comp)
         prisms.append(Prism("body", comp.ref, comp.body_polygon_mm(), (0.0, 0.0, top),
                             float(comp.standoff_mm)))
         for joint in comp.joints:

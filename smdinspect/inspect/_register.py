@@ -37,6 +37,7 @@ import numpy as np
 from ..errors import InputError
 from ._config import InspectConfig
 from ._geometry import apply2d, decompose2d, polygon_mask, rigid2d, world_to_pixel
+from ._features import feature_pairs, refine_with_features
 from ._reference import Prism, reference_points, reference_prisms, render_reference
 
 __all__ = ["RegistrationResult", "masked_ncc", "register_board"]
@@ -66,7 +67,8 @@ class RegistrationResult:
     converged : bool
         True when the board was located (every check passed).
     method : str
-        ``"coarse+icp"`` or ``"coarse"`` (ICP rejected; see ``meta['icp']``).
+        The stages whose result was kept: ``"coarse"``, ``"coarse+features"``, with
+        ``"+icp"`` when the ICP ran and improved the fit (see ``meta``).
     reason : str
         Why the board was not located ("" when it was).
     score : float
@@ -196,12 +198,13 @@ def masked_ncc(fixed, fixed_mask, moving, moving_mask, *, min_overlap: float = 1
         moving, np.asarray(moving_mask, bool), min_overlap)
 
 
-def _parabola_peak(a: float, b: float, c: float) -> float:
-    """Offset in (−0.5, 0.5) of the vertex of the parabola through (−1, a), (0, b), (1, c)."""
+def _parabola_peak(a: float, b: float, c: float) -> tuple[float, float]:
+    """Vertex (offset in [−0.5, 0.5], value) of the parabola through (−1, a), (0, b), (1, c)."""
     den = a - 2.0 * b + c
     if den >= 0 or not np.isfinite(den):
-        return 0.0
-    return float(np.clip(0.5 * (a - c) / den, -0.5, 0.5))
+        return 0.0, float(b)
+    off = float(np.clip(0.5 * (a - c) / den, -0.5, 0.5))
+    return off, float(b - 0.125 * (a - c) ** 2 / den) if abs(off) < 0.5 else float(b)
 
 
 # --------------------------------------------------------------------------------------
@@ -225,62 +228,77 @@ class _Level:
     fixed: np.ndarray
     fmask: np.ndarray
     k: int                      # block size in native pixels
+    p: float                    # native pixel size (mm)
     q: float                    # block size in mm
     origin: tuple[float, float]  # world position of block (Hq−1, 0)
 
 
 def _level(height: np.ndarray, reliable: np.ndarray, p: float, k: int, clip: tuple[float, float]) -> _Level:
     h = height.shape[0]
-    mean, valid = _block_mean(height, reliable, k)
+    mean, valid = _block_mean(np.clip(height, *clip), reliable, k)
     hq = mean.shape[0]
     # Block (i, j) centre: native row i·k + (k−1)/2, col j·k + (k−1)/2.
     x0 = (k - 1) / 2.0 * p
     y0 = (h - 1 - ((hq - 1) * k + (k - 1) / 2.0)) * p
-    return _Level(np.clip(mean, *clip), valid, k, k * p, (x0, y0))
+    return _Level(mean, valid, k, p, k * p, (x0, y0))
+
+
+def _render_level(level: _Level, prisms, board, T, shape, origin, clip):
+    """The reference rendered at the native pixel size, then block-averaged like the
+    measurement (so both carry the same partial-pixel edges)."""
+    k = level.k
+    nat_origin = (origin[0] - (k - 1) / 2.0 * level.p, origin[1] - (k - 1) / 2.0 * level.p)
+    mov, mmask = render_reference(prisms, T, shape=(shape[0] * k, shape[1] * k),
+                                  pixel_size_mm=level.p, origin_mm=nat_origin, board=board)
+    if k == 1:
+        return np.clip(mov, *clip), mmask
+    return _block_mean(np.clip(mov, *clip), mmask, k)
 
 
 def _search(level: _Level, prisms: list[Prism], board, T0: np.ndarray, pivot: np.ndarray,
             angles: np.ndarray, margin_mm: float, min_overlap: int, clip):
     """Best (score, T) over ``angles`` (rotation about world point ``pivot`` applied after
-    ``T0``) and every translation within ``±margin_mm``."""
+    ``T0``) and every translation within ``±margin_mm``.
+
+    Each angle's score is the interpolated (parabolic) peak of the correlation, so the
+    scores of neighbouring angles compare fairly whatever the sub-block phase."""
     m = int(math.ceil(margin_mm / level.q))
     hf, wf = level.fixed.shape
     shape = (hf + 2 * m, wf + 2 * m)
     origin = (level.origin[0] - m * level.q, level.origin[1] - m * level.q)
     fx = _Fixed(level.fixed, level.fmask, shape)
     scores = []
-    best = (-2.0, None, 0.0, 0.0)
+    cands = []
     for a in angles:
         Ta = _about(pivot, a) @ T0
-        mov, mmask = render_reference(prisms, Ta, shape=shape, pixel_size_mm=level.q,
-                                      origin_mm=origin, board=board)
-        ncc, _ = fx.ncc(np.clip(mov, *clip), mmask, min_overlap)
+        mov, mmask = _render_level(level, prisms, board, Ta, shape, origin, clip)
+        ncc, _ = fx.ncc(mov, mmask, min_overlap)
         # Keep shifts within ±m blocks: u − (hf − 1) ∈ [0, 2m].
         win = ncc[hf - 1: hf + 2 * m, wf - 1: wf + 2 * m]
         i, j = np.unravel_index(int(np.argmax(win)), win.shape)
         s = float(win[i, j])
-        scores.append(s)
-        if s > best[0]:
-            di = _parabola_peak(win[i - 1, j], s, win[i + 1, j]) if 0 < i < win.shape[0] - 1 else 0.0
-            dj = _parabola_peak(win[i, j - 1], s, win[i, j + 1]) if 0 < j < win.shape[1] - 1 else 0.0
-            # moving[r + i] meets fixed[r]: the reference must move by (m − i) blocks (rows).
-            d_row, d_col = m - (i + di), m - (j + dj)
-            best = (s, a, d_col * level.q, -d_row * level.q)
+        di, si = _parabola_peak(win[i - 1, j], s, win[i + 1, j]) if 0 < i < win.shape[0] - 1 else (0.0, s)
+        dj, sj = _parabola_peak(win[i, j - 1], s, win[i, j + 1]) if 0 < j < win.shape[1] - 1 else (0.0, s)
+        peak = s + (si - s) + (sj - s) if s > -1 else s
+        # moving[r + i] meets fixed[r]: the reference must move by (m − i) blocks (rows).
+        d_row, d_col = m - (i + di), m - (j + dj)
+        scores.append(peak)
+        cands.append((a, d_col * level.q, -d_row * level.q))
     scores = np.array(scores)
-    s, a, dx, dy = best
-    k = int(np.argmax(scores))
-    da = 0.0
-    if 0 < k < len(angles) - 1:
-        step = float(angles[1] - angles[0])
-        da = _parabola_peak(scores[k - 1], scores[k], scores[k + 1]) * step
-    if a is None:
+    kbest = int(np.argmax(scores))
+    if scores[kbest] <= -1:
         return -1.0, T0, scores
+    a, dx, dy = cands[kbest]
+    da = 0.0
+    if 0 < kbest < len(angles) - 1:
+        step = float(angles[1] - angles[0])
+        da = _parabola_peak(scores[kbest - 1], scores[kbest], scores[kbest + 1])[0] * step
     T = rigid2d(0.0, dx, dy) @ _about(pivot, a) @ T0
     if da:
         # The translation found at angle a stays right to first order; rotate about the
         # board centre (pivot moved with the translation) by the sub-step residue.
         T = _about(pivot + np.array([dx, dy]), da) @ T
-    return float(s), T, scores
+    return float(scores[kbest]), T, scores
 
 
 def _about(pivot: np.ndarray, angle_deg: float) -> np.ndarray:
@@ -300,6 +318,7 @@ def register_board(
     pixel_size_mm: float,
     config: InspectConfig | None = None,
     initial: np.ndarray | None = None,
+    aif: np.ndarray | None = None,
 ) -> RegistrationResult:
     """Locate ``board`` in a measured height map.
 
@@ -313,7 +332,9 @@ def register_board(
     pixel_size_mm : float
     config : InspectConfig, optional
     initial : (3, 3) float64, optional
-        Skip the coarse search and start the ICP from this placement.
+        Skip the coarse search and start the fine registration from this placement.
+    aif : (H, W) or (H, W, 3) array, optional
+        All-in-focus image; fiducials are located in it for the fine registration.
 
     Returns
     -------
@@ -339,57 +360,79 @@ def register_board(
     H, W = height.shape
     centre_img = np.array([(W - 1) * p / 2.0, (H - 1) * p / 2.0])
     centre_board = np.array(board.size_mm, np.float64) / 2.0
-    board_area_px = board.size_mm[0] * board.size_mm[1]
+    board_area_mm2 = board.size_mm[0] * board.size_mm[1]
 
     if initial is None:
         T0 = rigid2d(0.0, *(centre_img - centre_board))
-        # Level 1: every rotation and translation at the coarse pixel size.
-        k1 = max(1, int(round(cfg.coarse_pixel_size_mm / p)))
-        lv1 = _level(height, reliable, p, k1, clip)
-        step1 = 1.0
-        n_ang = int(math.ceil(cfg.max_rotation_deg / step1))
-        angles1 = np.arange(-n_ang, n_ang + 1) * step1
-        min_ov1 = int(0.25 * board_area_px / lv1.q ** 2)
-        s1, T1, sc1 = _search(lv1, prisms, board, T0, centre_img, angles1, cfg.max_offset_mm,
-                              min_ov1, clip)
-        # Level 2: half the block size, ±1 step around the best, small translation window.
-        k2 = max(1, k1 // 2)
-        lv2 = _level(height, reliable, p, k2, clip)
-        angles2 = np.arange(-4, 5) * (step1 / 4.0)
-        pivot = apply2d(T1, centre_board[None])[0]
-        min_ov2 = int(0.25 * board_area_px / lv2.q ** 2)
-        s2, T2, _ = _search(lv2, prisms, board, T1, pivot, angles2, 3 * lv1.q, min_ov2, clip)
-        score, T = (s2, T2) if s2 >= s1 - 0.05 else (s1, T1)
-        meta["coarse"] = {"level1": {"pixel_mm": lv1.q, "score": s1,
-                                     "angle_scores": np.round(sc1, 4).tolist()},
-                          "level2": {"pixel_mm": lv2.q, "score": s2},
-                          "seconds": round(time.perf_counter() - t_start, 3)}
-        log.debug("coarse registration: score %.3f (level 1 %.3f), rotation %.2f deg",
-                  score, s1, decompose2d(T)[0])
+        # Level 1: every rotation and translation at the coarse pixel size; then halve
+        # the block size (down to ~0.04 mm or the native pixel), searching ±2 quarter
+        # steps of the previous angle step and a few blocks of translation around the
+        # best so far.
+        k = max(1, int(round(cfg.coarse_pixel_size_mm / p)))
+        step = 1.0
+        n_ang = int(math.ceil(cfg.max_rotation_deg / step))
+        angles = np.arange(-n_ang, n_ang + 1) * step
+        T, pivot, margin = T0, centre_img, cfg.max_offset_mm
+        levels = []
+        while True:
+            lv = _level(height, reliable, p, k, clip)
+            min_ov = int(0.25 * board_area_mm2 / lv.q ** 2)
+            s_k, T_k, sc = _search(lv, prisms, board, T, pivot, angles, margin, min_ov, clip)
+            levels.append({"pixel_mm": lv.q, "score": round(s_k, 5),
+                           "rotation_deg": round(decompose2d(T_k)[0], 4),
+                           "angle_scores": np.round(sc, 4).tolist()})
+            if s_k <= -1:
+                break
+            score, T = s_k, T_k
+            # Stop at ~0.04 mm: the feature fit takes it from there.
+            if k == 1 or lv.q <= 0.045:
+                break
+            margin = 3 * lv.q
+            k = max(1, k // 2)
+            step /= 4.0
+            angles = np.arange(-2, 3) * step
+            pivot = apply2d(T, centre_board[None])[0]
+        if not levels or levels[0]["score"] <= -1:
+            score = -1.0
+        meta["coarse"] = {"levels": levels, "seconds": round(time.perf_counter() - t_start, 3)}
+        meta["coarse_transform"] = T.copy()
+        log.debug("coarse registration: score %.3f, rotation %.3f deg", score, decompose2d(T)[0])
     else:
         T = np.asarray(initial, np.float64)
         if T.shape != (3, 3):
             raise InputError(f"initial must be a (3, 3) matrix; got shape {T.shape}")
         score = float("nan")
 
-    # Fine: ICP on the measured points against the reference surface.
-    ref_pts, ref_n = reference_points(board, spacing_mm=max(p, 0.02), seed=cfg.seed)
-    meas = _measured_points(height, reliable, p, board, T, max_points=60000, seed=cfg.seed)
+    # Fine: body centroids and fiducials (robust rigid fit), then optionally ICP.
+    method = "coarse"
+    if cfg.fine_features:
+        pairs = feature_pairs(height, reliable, aif, board, T, p)
+        T_feat, feat_info = refine_with_features(pairs, T)
+        meta["features"] = feat_info
+        if T_feat is not None:
+            moved = _moved_mm(T, T_feat, board)
+            feat_info["moved_mm"] = round(moved, 5)
+            if moved <= 0.25:
+                T, method = T_feat, "coarse+features"
+            else:
+                feat_info["rejected_fit"] = f"moved the board by {moved:.3f} mm"
+    ref_pts, ref_n = reference_points(board, spacing_mm=max(p, 0.04), seed=cfg.seed)
+    meas = _measured_points(height, reliable, p, board, T, max_points=20000, seed=cfg.seed)
     fit0, rmse0 = _evaluate(meas, ref_pts, T, cfg.icp_distance_mm)
-    method, T_final, fit, rmse = "coarse", T, fit0, rmse0
-    icp_meta: dict[str, Any] = {"coarse_fitness": fit0, "coarse_rmse_mm": rmse0}
-    if len(meas) >= 100 and fit0 > 0.05:
+    T_final, fit, rmse = T, fit0, rmse0
+    icp_meta: dict[str, Any] = {"fitness_before": fit0, "rmse_mm_before": rmse0}
+    if cfg.icp and len(meas) >= 100 and fit0 > 0.05:
         T_icp = _icp(meas, ref_pts, ref_n, T, cfg.icp_distance_mm)
         da, dx, dy = decompose2d(np.linalg.inv(T) @ T_icp)
-        moved = math.hypot(*(apply2d(T_icp, centre_board[None]) - apply2d(T, centre_board[None]))[0])
+        moved = _moved_mm(T, T_icp, board)
         fit1, rmse1 = _evaluate(meas, ref_pts, T_icp, cfg.icp_distance_mm)
         icp_meta.update({"icp_fitness": fit1, "icp_rmse_mm": rmse1, "icp_moved_mm": moved,
                          "icp_rotated_deg": da})
-        if abs(da) <= 1.0 and moved <= 0.25 and fit1 >= fit0 - 0.01:
-            method, T_final, fit, rmse = "coarse+icp", T_icp, fit1, rmse1
+        if abs(da) <= 1.0 and moved <= 0.25 and fit1 > fit0 and rmse1 <= rmse0:
+            method, T_final, fit, rmse = method + "+icp", T_icp, fit1, rmse1
         else:
             icp_meta["rejected"] = (f"ICP moved {moved:.3f} mm / {da:.2f} deg, fitness "
-                                    f"{fit0:.3f} -> {fit1:.3f}")
+                                    f"{fit0:.3f} -> {fit1:.3f}, rmse {rmse0:.4f} -> {rmse1:.4f}")
     meta["icp"] = icp_meta
     coverage = _coverage(height, reliable, p, ref_pts, ref_n, T_final, cfg.icp_distance_mm)
     meta["forward_fitness"] = fit
@@ -418,6 +461,13 @@ def register_board(
              "fitness %.3f, rmse %.1f um%s", method, result.rotation_deg, *result.offset_mm,
              score, fit, rmse * 1000, "" if not reasons else " -- NOT LOCATED: " + result.reason)
     return result
+
+
+def _moved_mm(T0: np.ndarray, T1: np.ndarray, board) -> float:
+    """Largest displacement of the board's corners between two placements (mm)."""
+    w, h = board.size_mm
+    c = np.array([[0, 0], [w, 0], [w, h], [0, h]], float)
+    return float(np.max(np.hypot(*(apply2d(T1, c) - apply2d(T0, c)).T)))
 
 
 def _measured_points(height, reliable, p, board, T, *, max_points, seed):

@@ -67,6 +67,7 @@ __all__ = [
 _JUMP_LAYERS = 4  # heights more than this many layers above a layer occlude it
 _GROUP_REL = 0.25  # far layers whose defocus differs by < 25 % share one blur
 _NEAR_LAYERS = 4  # layers within this many of z are never grouped
+_LOWRES_SIGMA = 4.0  # runs of groups blurred by more than this (px) render at 1/2 .. 1/8
 
 
 @dataclass(frozen=True)
@@ -205,11 +206,33 @@ class _Prepared:
         self.small = (max(1, math.ceil(ww / self.f)), max(1, math.ceil(hh / self.f)))
         self._fills: dict[int, np.ndarray] = {}
         self._mean = self.L.reshape(-1, self.C).mean(axis=0)
+        self._levels: dict[int, tuple[np.ndarray, np.ndarray, np.ndarray]] = {}
 
-    def fill(self, a: int, box: tuple[int, int, int, int]) -> np.ndarray:
-        """Layer ``a``'s colour interpolated under everything, smooth, on the crop ``box``.
+    def level(self, f: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """``(h_pad, h_small, L_small)`` for reduced resolution ``1/f``.
 
-        Returns ``(r1 - r0, c1 - c0, C)`` float32 for ``box = (r0, r1, c0, c1)``.
+        ``h_pad`` is the height map padded (edge values) to a multiple of ``f``;
+        ``h_small`` and ``L_small`` are its and the radiance's block averages.
+        """
+        import cv2
+
+        got = self._levels.get(f)
+        if got is None:
+            hh, ww = self.h.shape
+            ph, pw = -hh % f, -ww % f
+            h_pad = cv2.copyMakeBorder(self.h, 0, ph, 0, pw, cv2.BORDER_REPLICATE)
+            l_pad = _as_hwc(cv2.copyMakeBorder(self.L, 0, ph, 0, pw, cv2.BORDER_REPLICATE))
+            size = ((ww + pw) // f, (hh + ph) // f)
+            got = (h_pad, cv2.resize(h_pad, size, interpolation=cv2.INTER_AREA),
+                   _as_hwc(cv2.resize(l_pad, size, interpolation=cv2.INTER_AREA)))
+            self._levels[f] = got
+        return got
+
+    def fill(self, a: int, box: tuple[int, int, int, int], f: int = 1) -> np.ndarray:
+        """Layer ``a``'s colour interpolated under everything, smooth, on a crop.
+
+        ``box = (r0, r1, c0, c1)`` in pixels of the ``1/f`` resolution grid; returns
+        ``(r1 - r0, c1 - c0, C)`` float32.
         """
         import cv2
 
@@ -224,8 +247,10 @@ class _Prepared:
         r0, r1, c0, c1 = box
         hh, ww = self.h.shape
         fx, fy = small.shape[1] / ww, small.shape[0] / hh
-        # dst pixel (x, y) of the crop samples the small image at the matching position
-        m = np.array([[fx, 0.0, (c0 + 0.5) * fx - 0.5], [0.0, fy, (r0 + 0.5) * fy - 0.5]])
+        # output pixel x sits at full-res (x + c0 + 0.5)·f − 0.5, i.e. fill-grid
+        # coordinate ((x + c0 + 0.5)·f)·fx − 0.5
+        m = np.array([[f * fx, 0.0, (c0 + 0.5) * f * fx - 0.5],
+                      [0.0, f * fy, (r0 + 0.5) * f * fy - 0.5]])
         return _as_hwc(cv2.warpAffine(small, m, (c1 - c0, r1 - r0),
                                       flags=cv2.INTER_LINEAR | cv2.WARP_INVERSE_MAP,
                                       borderMode=cv2.BORDER_REPLICATE))
@@ -326,41 +351,134 @@ def render_optical(
     hh, ww = scene.shape
     C = prep.C
     centres = prep.centres
+    groups = [(a, b) for a, b in _group_layers(centres, z, prep.t) if prep.bbox[a] is not None]
+    mids = [float(np.mean(centres[a:b + 1])) for a, b in groups]
+    sigmas = [float(s) for s in optics.blur_sigma_px(np.array(mids), z)]
+    scales = [1.0] * len(groups) if optics.telecentric else \
+        [float(s) for s in optics.scale_at(np.array(mids), z)]
+    jobs = list(zip(groups, sigmas, scales))
+    # Blurry runs below and above the sharp middle are composited at reduced resolution
+    # (over-compositing is associative): the low run into the background, the high run
+    # into a foreground buffer laid over the result at the end.
+    sharp = [i for i, s in enumerate(sigmas) if s < _LOWRES_SIGMA]
+    lo_end = sharp[0] if sharp else len(jobs)
+    hi_start = sharp[-1] + 1 if sharp else len(jobs)
     acc = np.zeros((hh, ww, C), np.float32)
-    centre_rc = ((hh - 1) / 2.0, (ww - 1) / 2.0)
-    for a, b in _group_layers(centres, z, prep.t):
-        box = prep.bbox[a]
-        if box is None:
-            continue
-        mid = float(np.mean(centres[a:b + 1]))
-        sigma = float(optics.blur_sigma_px(mid, z))
-        scale = 1.0 if optics.telecentric else float(optics.scale_at(mid, z))
-        pad = int(math.ceil(3.0 * sigma)) + 2
-        r0, r1, c0, c1 = box
+    if lo_end:
+        run = jobs[:lo_end]
+        f = _run_factor(min(s for _, s, _ in run), hh, ww)
+        buf = _composite_run(prep, run, z, f, C + 1)
+        acc += _upsample(buf, f, hh, ww)[:, :, :C]
+    for (a, b), sigma, scale in jobs[lo_end:hi_start]:
+        layer, dst = _layer(prep, a, b, sigma, scale, 1)
+        _over(acc, layer, dst, C)
+    if hi_start < len(jobs):
+        run = jobs[hi_start:]
+        f = _run_factor(min(s for _, s, _ in run), hh, ww)
+        buf = _composite_run(prep, run, z, f, C + 1)
+        _over(acc, _upsample(buf, f, hh, ww), (0, hh, 0, ww), C)
+    return acc[:, :, 0] if C == 1 else acc
+
+
+def _run_factor(sigma_min: float, hh: int, ww: int) -> int:
+    """Largest power-of-two reduction keeping σ ≥ 2 reduced pixels (at most 8)."""
+    f = 1
+    while f < 8 and sigma_min / (2 * f) >= 2.0 and min(hh, ww) / (2 * f) >= 16:
+        f *= 2
+    return f
+
+
+def _composite_run(prep: "_Prepared", run, z: float, f: int, channels: int) -> np.ndarray:
+    """Premultiplied colour + alpha of a run of groups composited far to near at 1/f."""
+    h_pad = prep.level(f)[0] if f > 1 else prep.h
+    buf = np.zeros((h_pad.shape[0] // f, h_pad.shape[1] // f, channels), np.float32)
+    for (a, b), sigma, scale in run:
+        layer, dst = _layer(prep, a, b, sigma, scale, f)
+        _over(buf, layer, dst, channels - 1)
+    return buf
+
+
+def _upsample(buf: np.ndarray, f: int, hh: int, ww: int) -> np.ndarray:
+    import cv2
+
+    if f == 1:
+        return buf
+    up = _as_hwc(cv2.resize(buf, (buf.shape[1] * f, buf.shape[0] * f),
+                            interpolation=cv2.INTER_LINEAR))
+    return up[:hh, :ww]
+
+
+def _over(acc: np.ndarray, layer: np.ndarray, dst, C: int) -> None:
+    """``acc = layer OVER acc`` in place on the box ``dst`` (premultiplied colour).
+
+    ``acc`` has C channels (colour) or C + 1 (colour + alpha), ``layer`` C + 1.
+    Works on rows flattened to ``w·channels`` (fast contiguous loops).
+    """
+    d0, d1, e0, e1 = dst
+    view = acc[d0:d1, e0:e1]
+    h, w, n = view.shape
+    flat = view.reshape(h, w * n)  # a view: each row of the crop is contiguous
+    inv = 1.0 - layer[:, :, C]
+    flat *= np.repeat(inv, n, axis=1) if n > 1 else inv
+    flat += np.ascontiguousarray(layer[:, :, :n]).reshape(h, w * n)
+
+
+def _layer(prep: "_Prepared", a: int, b: int, sigma: float, scale: float, f: int):
+    """One group's blurred premultiplied colour + coverage, on the 1/f grid.
+
+    Returns ``(layer, box)``: ``(h, w, C + 1)`` float32 and where it goes
+    ``(r0, r1, c0, c1)`` in the 1/f grid.
+    """
+    import cv2
+
+    C = prep.C
+    centres = prep.centres
+    t = prep.t
+    hh, ww = prep.h.shape
+    pad = int(math.ceil(3.0 * sigma / f)) + 2
+    r0, r1, c0, c1 = prep.bbox[a]
+    if f > 1:
+        h_full, h_small, l_small = prep.level(f)
+        hs, ws = h_small.shape
+        r0, c0 = max(0, r0 // f - pad), max(0, c0 // f - pad)
+        r1, c1 = min(hs, -(-r1 // f) + pad), min(ws, -(-c1 // f) + pad)
+        cover_full = h_full[r0 * f:r1 * f, c0 * f:c1 * f] - np.float32(centres[a] - t)
+        cover_full *= np.float32(1.0 / t)
+        np.clip(cover_full, 0.0, 1.0, out=cover_full)
+        cover = cv2.resize(cover_full, (c1 - c0, r1 - r0), interpolation=cv2.INTER_AREA)
+        hc = h_small[r0:r1, c0:c1]
+        rad = l_small[r0:r1, c0:c1]
+        shape = (hs, ws)
+    else:
         r0, c0 = max(0, r0 - pad), max(0, c0 - pad)
         r1, c1 = min(hh, r1 + pad), min(ww, c1 + pad)
         hc = prep.h[r0:r1, c0:c1]
-        cover = hc - np.float32(centres[a] - prep.t)
-        cover *= np.float32(1.0 / prep.t)
+        cover = hc - np.float32(centres[a] - t)
+        cover *= np.float32(1.0 / t)
         np.clip(cover, 0.0, 1.0, out=cover)
-        near = hc < centres[b] + prep.jump_mm
         rad = prep.L[r0:r1, c0:c1]
-        if not near.all():
-            hidden = prep.fill(a, (r0, r1, c0, c1)) + prep.L_hf[r0:r1, c0:c1]
-            rad = np.where(near[:, :, None], rad, hidden)
-        layer = np.empty((r1 - r0, c1 - c0, C + 1), np.float32)
-        layer[:, :, :C] = rad * cover[:, :, None]
-        layer[:, :, C] = cover
-        dst = (r0, r1, c0, c1)
-        if scale != 1.0:
-            layer, dst = _scale_layer(layer, (r0, r1, c0, c1), scale, centre_rc, (hh, ww), pad)
+        shape = (hh, ww)
+    near = hc < centres[b] + prep.jump_mm
+    if not near.all():
+        hidden = prep.fill(a, (r0, r1, c0, c1), f)
+        if f == 1:  # fine texture of the occluder; blurred away at reduced resolution
+            hidden += prep.L_hf[r0:r1, c0:c1]
+        rad = np.where(near[:, :, None], rad, hidden)
+    if C == 1:
+        layer = _as_hwc(cv2.merge([cv2.multiply(rad[:, :, 0], cover), cover]))
+    else:
+        layer = cv2.merge([cv2.multiply(rad, cv2.merge([cover] * C)), cover])
+    box = (r0, r1, c0, c1)
+    if scale != 1.0:
+        centre = (((hh - 1) / 2.0 + 0.5) / f - 0.5, ((ww - 1) / 2.0 + 0.5) / f - 0.5)
+        layer, box = _scale_layer(layer, box, scale, centre, shape, pad)
+    if f > 1:
+        # block averaging and the final linear upsampling add ~1/4 px² (1/f grid) of variance
+        s = math.sqrt(max((sigma / f) ** 2 - 0.25, 0.25))
+        layer = _as_hwc(cv2.GaussianBlur(layer, (0, 0), s, borderType=cv2.BORDER_REFLECT))
+    else:
         layer = _blur(layer, sigma)
-        d0, d1, e0, e1 = dst
-        view = acc[d0:d1, e0:e1]
-        alpha = layer[:, :, C:]
-        view *= 1.0 - alpha
-        view += layer[:, :, :C]
-    return acc[:, :, 0] if C == 1 else acc
+    return layer, box
 
 
 def _group_layers(centres: np.ndarray, z: float, t: float) -> list[tuple[int, int]]:
