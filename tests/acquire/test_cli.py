@@ -40,6 +40,14 @@ def test_acquire_sim_rig_exit_0(tmp_path, capsys):
     assert len(FocalStack.open(tmp_path / "s")) == 19
 
 
+def test_shipped_sim_rig_works(tmp_path, capsys):
+    rc, out, err = run_cli(capsys, "--rig", REPO / "examples" / "sim_rig.toml", "--out",
+                           tmp_path / "s")
+    assert rc == 0, err
+    stack = FocalStack.open(tmp_path / "s")
+    assert len(stack) == 19 and stack.pixel_size_mm == 0.015
+
+
 @pytest.mark.parametrize("case, code, message", [
     ("missing_rig", 2, "rig file not found"),
     ("bad_rig", 2, r"unknown key(s) stepp_mm in [sweep]"),

@@ -36,6 +36,8 @@ def test_examples_parse():
     sim = load_rig(EXAMPLES / "sim_rig.toml")
     assert sim.stage.fake and sim.camera.kind is CameraKind.SIMULATED
     assert sim.sweep.n_frames == 19
+    board = load_rig(EXAMPLES / "sim_board_rig.toml")
+    assert board.resolve(board.camera.options["board"]).is_file()
     real = load_rig(EXAMPLES / "grbl_usb_rig.toml")
     assert not real.stage.fake and real.camera.kind is CameraKind.OPENCV
     assert real.stage.home
