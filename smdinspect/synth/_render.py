@@ -417,7 +417,8 @@ def _over(acc: np.ndarray, layer: np.ndarray, dst, C: int) -> None:
     d0, d1, e0, e1 = dst
     view = acc[d0:d1, e0:e1]
     h, w, n = view.shape
-    flat = view.reshape(h, w * n)  # a view: each row of the crop is contiguous
+    flat = view.view()
+    flat.shape = (h, w * n)  # never a copy (raises instead): each crop row is contiguous
     inv = 1.0 - layer[:, :, C]
     flat *= np.repeat(inv, n, axis=1) if n > 1 else inv
     flat += np.ascontiguousarray(layer[:, :, :n]).reshape(h, w * n)
