@@ -55,7 +55,7 @@ from enum import Enum
 from pathlib import Path
 from typing import Any, Callable
 
-from ..errors import InputError
+from ..errors import CameraError, InputError
 from ._camera import Camera, FolderCamera, GenICamCamera, OpenCVCamera, SimulatedCamera
 from ._stage import Stage, StageConfig
 from ._sweep import SweepConfig, SweepResult, ZMapping, _Session
@@ -99,7 +99,10 @@ class CameraConfig:
     ----------
     kind : CameraKind
     options : dict
-        The kind's settings (see :data:`CAMERA_OPTIONS` in the rig-file docs).
+        The kind's settings: keyword arguments of :class:`OpenCVCamera`,
+        :class:`FolderCamera`, :class:`GenICamCamera`, or the simulated camera's ``scene`` /
+        ``board``, ``defects``, ``seed``, ``sensor``, ``scene_options``
+        (see :mod:`smdinspect.acquire._simulated`).
     pixel_size_mm : float or None
         Object-side pixel size, if the rig file gives it.
     """
@@ -386,7 +389,8 @@ class Rig:
 
     def focus_z_mm(self) -> float:
         """Focused-plane height now, from the machine z the stage reports."""
-        assert self.stage is not None
+        if self.stage is None:
+            raise CameraError("the simulated camera needs the rig's stage, which is not open")
         return round(self.config.mapping.z_mm(self.stage.position()), 9)
 
     def _make_camera(self) -> Camera:

@@ -150,3 +150,29 @@ def test_sigkill_mid_sweep_leaves_no_corrupt_frame_and_resumes(tmp_path, capsys)
     assert rc == 0, err
     assert frames_and_z(out) == frames_and_z(ref)
     assert not [p.name for p in out.iterdir() if p.name.startswith(".")]
+
+
+def test_ctrl_c_exits_130_and_keeps_frames(tmp_path, capsys):
+    rig = sim_rig(tmp_path / "rig.toml", settle=0.03)
+    out = tmp_path / "s"
+    proc = subprocess.Popen([sys.executable, "-m", "smdinspect", "-q", "acquire", "--rig",
+                             str(rig), "--out", str(out)],
+                            env={**os.environ, "PYTHONPATH": str(REPO)},
+                            stdout=subprocess.DEVNULL, stderr=subprocess.PIPE)
+    deadline = time.monotonic() + 60
+    while time.monotonic() < deadline and proc.poll() is None:
+        try:
+            if len(json.loads((out / "stack.json").read_text())["frames"]) >= 3:
+                break
+        except (FileNotFoundError, json.JSONDecodeError):
+            pass
+        time.sleep(0.005)
+    proc.send_signal(signal.SIGINT)
+    _, err = proc.communicate(timeout=20)
+    assert proc.returncode == 130, err.decode()
+    assert err.decode().strip() == "smdinspect acquire: interrupted; finished work was kept"
+    kept = json.loads((out / "stack.json").read_text())["frames"]
+    assert 3 <= len(kept) < 19
+    rc, _, err = run_cli(capsys, "--rig", rig, "--out", out, "--resume")
+    assert rc == 0, err
+    assert len(FocalStack.open(out)) == 19
