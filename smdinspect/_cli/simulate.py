@@ -39,7 +39,8 @@ def register(sub: argparse._SubParsersAction) -> None:
                    help="focus step Δd between frames (default 0.05)")
     p.add_argument("--z-range-mm", default=None, metavar="LO,HI",
                    help="lowest and highest focus height (default: 3 steps beyond the "
-                        "scene's lowest and highest point)")
+                        "scene's lowest and highest point); write a negative LO as "
+                        "--z-range-mm=-0.2,1.8")
     p.add_argument("--pixel-size-mm", type=float, default=0.015, metavar="P",
                    help="object pixel size (default 0.015)")
     p.add_argument("--bit-depth", type=int, choices=(8, 16), default=8)
@@ -57,7 +58,8 @@ def register(sub: argparse._SubParsersAction) -> None:
     g.add_argument("--defects", default="",
                    help="defects to inject, e.g. R3.1:insufficient,U1.4:bridge")
     g.add_argument("--offset-mm", default=None, metavar="X,Y",
-                   help="board offset from the image centre (default: random within ±2 mm)")
+                   help="board offset from the image centre (default: random within ±2 mm); "
+                        "write negative values as --offset-mm=-1,0.5")
     g.add_argument("--rotate-deg", type=float, default=None,
                    help="board rotation (default: random within ±5°)")
     p.set_defaults(func=run)
