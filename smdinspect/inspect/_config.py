@@ -9,7 +9,17 @@ from typing import Any
 
 from ..errors import InputError
 
-__all__ = ["InspectConfig", "Verdict"]
+__all__ = ["FilletModel", "InspectConfig", "Verdict"]
+
+
+class FilletModel(str, Enum):
+    """How a chip joint's max solder height is estimated."""
+
+    #: Fit a concave meniscus ``F·(1 − d/L)²`` to the fillet in front of the end face and
+    #: report F, the height where the solder meets the termination.
+    MENISCUS = "meniscus"
+    #: The ``height_percentile`` percentile of the solder area's heights.
+    PERCENTILE = "percentile"
 
 
 class Verdict(str, Enum):
@@ -62,13 +72,28 @@ class InspectConfig:
         reliable pixels of the solder area (robust against single outliers), not the
         raw maximum.
     missing_height_mm : float
-        ``missing`` when the joint's max height is below this (nearly no solder).
+        Without a colour cue: ``missing`` when the joint's max height is below this
+        (nearly no solder).
+    bare_missing_fraction : float
+        With a colour cue (RGB image, fiducials of a coloured finish): a joint below its
+        band is ``missing`` when at least this fraction of its visible pad looks like the
+        bare finish, else ``insufficient``.
+    fillet_model : FilletModel or str
+        ``"meniscus"`` (default) or ``"percentile"``; see :mod:`._measure`.
+    cap_excess_mm : float
+        Chips: ``excess`` also when solder covers the end cap higher than this above the
+        body top.
+    standing_fraction : float
+        Chips: ``tombstone`` when pixels standing higher than the body top +
+        max(0.2 mm, 30 % of the body height) cover at least this fraction of the body's
+        area (an upright part).
     solder_min_height_mm : float
         A pixel counts as covered by solder (area, volume) when it stands higher than
         this above the board.
     body_margin_mm : float
-        The component body footprint, grown by this margin, is cut out of the pad when
-        measuring solder (the body's edge is blurred in the height map).
+        Pixels this close to a body (or a gull-wing lead's knee) are not used for
+        solder: shape from focus spreads a tall edge over about half the focus window.
+        Keep it >= (window_px / 2 + 1) pixels.
     bridge_height_mm : float
         Solder in the gap between two neighbouring pads of a component is a ``bridge``
         when the gap is covered higher than this ...
@@ -132,11 +157,15 @@ class InspectConfig:
         Seed of the RANSAC plane fit and the reference point sampling.
     """
 
-    min_reliable_fraction: float = 0.5
+    min_reliable_fraction: float = 0.4
     height_percentile: float = 97.0
     missing_height_mm: float = 0.04
+    bare_missing_fraction: float = 0.5
+    fillet_model: FilletModel = FilletModel.MENISCUS
+    cap_excess_mm: float = 0.05
+    standing_fraction: float = 0.15
     solder_min_height_mm: float = 0.02
-    body_margin_mm: float = 0.04
+    body_margin_mm: float = 0.08
     bridge_height_mm: float = 0.05
     bridge_min_fraction: float = 0.8
     gap_margin_mm: float = 0.03
@@ -161,6 +190,11 @@ class InspectConfig:
     seed: int = 0
 
     def __post_init__(self) -> None:
+        try:
+            object.__setattr__(self, "fillet_model", FilletModel(self.fillet_model))
+        except ValueError:
+            raise InputError(f"fillet_model must be one of "
+                             f"{', '.join(m.value for m in FilletModel)}; got {self.fillet_model!r}") from None
         _check_number("min_reliable_fraction", self.min_reliable_fraction, 0.0, 1.0)
         _check_number("height_percentile", self.height_percentile, 50.0, 100.0)
         for name in ("missing_height_mm", "solder_min_height_mm", "body_margin_mm",
@@ -170,7 +204,9 @@ class InspectConfig:
                      "max_offset_mm", "coarse_pixel_size_mm", "max_rmse_mm",
                      "icp_distance_mm", "focus_noise"):
             _check_number(name, getattr(self, name), 0.0, lo_open=True)
+        _check_number("cap_excess_mm", self.cap_excess_mm, 0.0, lo_open=True)
         for name in ("bridge_min_fraction", "component_present_fraction", "min_match_score",
+                     "bare_missing_fraction", "standing_fraction",
                      "min_fitness", "shift_tol_fraction"):
             _check_number(name, getattr(self, name), 0.0, 1.0)
         _check_number("tombstone_tilt_deg", self.tombstone_tilt_deg, 0.0, 90.0, lo_open=True)
@@ -183,7 +219,9 @@ class InspectConfig:
 
     def to_dict(self) -> dict[str, Any]:
         """Plain dict of every setting (written into ``report.json``)."""
-        return asdict(self)
+        d = asdict(self)
+        d["fillet_model"] = self.fillet_model.value
+        return d
 
     @classmethod
     def from_dict(cls, doc: dict[str, Any]) -> "InspectConfig":

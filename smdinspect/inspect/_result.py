@@ -50,6 +50,15 @@ class JointResult:
     lead_height_mm: float = float("nan")
     #: Height reached in the gap towards the neighbouring pad (NaN when there is none).
     gap_height_mm: float = float("nan")
+    #: How ``measured_max_mm`` was obtained: "meniscus", "percentile", "foot" or "side".
+    max_method: str = ""
+    #: Fraction of the visible pad that looks like the bare finish (colour; NaN: no cue).
+    bare_fraction: float = float("nan")
+    #: Gull-wing: percentile height over the lead's foot, and over the pad beside the lead.
+    foot_height_mm: float = float("nan")
+    side_height_mm: float = float("nan")
+    #: Chip: end-cap top minus the nominal body top.
+    cap_excess_mm: float = float("nan")
     #: Pad outline in image pixels, (N, 2) (col, row); for pictures.
     polygon_px: np.ndarray | None = field(default=None, repr=False, compare=False)
 
@@ -76,8 +85,13 @@ class JointResult:
                 "area_uncertainty_mm2": _r(self.area_uncertainty_mm2, 5),
                 "reliable_fraction": _r(self.reliable_fraction, 3),
                 "n_pixels": int(self.n_pixels),
+                "max_method": self.max_method,
                 "lead_height_mm": _r(self.lead_height_mm),
+                "foot_height_mm": _r(self.foot_height_mm),
+                "side_height_mm": _r(self.side_height_mm),
+                "cap_excess_mm": _r(self.cap_excess_mm),
                 "gap_height_mm": _r(self.gap_height_mm),
+                "bare_fraction": _r(self.bare_fraction, 3),
             },
             "expected": {
                 "nominal_height_mm": _r(self.expected_nominal_mm),

@@ -1,0 +1,665 @@
+"""Per-joint and per-component measurements on the levelled height map.
+
+Everything here works on the measured surface after the board was located: heights
+are above the board plane, corrected per component by the local board level (median of
+the bare-board pixels around it); every pad, body and lead outline is mapped into the
+image through the registration's placement; numbers come from reliable pixels only.
+
+Pixels within ``body_margin_mm`` of a body (or a gull-wing lead's knee) are never used
+for solder: shape from focus spreads a tall edge over about half the focus window, so
+those pixels read the body's height, often with full confidence.
+
+Chip end joint
+    The *fillet region* is the pad in front of the body's end face, from
+    ``body_margin_mm`` out to the pad's outer edge (length L). A concave meniscus that
+    wets the termination up to height F and the pad up to its edge is fitted to it:
+    ``h(d) = F·(1 − d/L)²`` (d: distance from the end face), robust least squares with
+    3-MAD trimming. The joint's max height is F, the fillet height at the termination,
+    which is what IPC-A-610 bounds (``fillet_model="meniscus"``; with
+    ``"percentile"``, or when the fit has too few pixels, it is the
+    ``height_percentile`` percentile of the whole solder area instead). Also measured:
+    the end cap's top (solder climbing over the termination means excess).
+Gull-wing heel joint
+    The lead's foot hides most of the pad. Measured: the foot (the flat part of the
+    lead, ``body_margin_mm`` away from the knee) as the ``height_percentile``
+    percentile (``foot``) and its toe half as the median (``lead_mm``: the lead's own
+    height); the *side region* (pad minus the lead grown by one pixel). A heel fillet
+    climbing above the lead top (solder thickness + lead thickness, +20 µm) makes the
+    foot value the joint's max height; otherwise the side region's percentile is.
+Colour
+    When the all-in-focus image is in colour and the board has fiducials (bare pad
+    finish), ``bare_fraction`` is the fraction of the visible pad (not under the body or
+    lead) whose chromaticity is closer to the fiducials' than to neutral solder grey: 1
+    for an unsoldered ENIG pad, 0 for a wetted one. NaN when the finish is itself grey.
+Gaps
+    Between neighbouring pads of a component (the same side of a gull-wing part; along
+    both body sides between the two pads of a chip) the gap, ``gap_margin_mm`` away
+    from the pads and ``body_margin_mm`` away from the body, is cut into paths running
+    from one pad to the other. A path is covered at height z when
+    ``bridge_min_fraction`` of its reliable pixels stand higher; ``gap_mm`` is the
+    highest covered z over the paths.
+Area, volume, mean
+    Over the solder area (chips: the pad outside the grown body; gull-wing: the side
+    region plus the solder standing above the nominal lead top on the foot); volume and
+    area scaled by 1/reliable fraction for the pixels that could not be measured.
+Uncertainty
+    Per pixel ``u = σ_F² · ε / (√2 · Δd)``: the standard deviation of the 3-point
+    Gaussian peak position when the log focus values carry a relative noise ε
+    (``focus_noise``), σ_F the fitted focus-curve width (``Surface.sigma_mm``), Δd the
+    focus step. Meniscus F: the fit's standard error combined with
+    ``√Σ(g²u²)/Σg²`` (g the model's shape) and the local level's uncertainty.
+    Percentile max: median ``u`` of the pixels at or above the percentile ⊕ level.
+    Mean: ``√Σu²/n`` ⊕ level. Volume: ``p²·√Σu²`` ⊕ level × area. Area: the area of
+    the pixels within ``u`` of the coverage threshold.
+Component (body)
+    Reliable fraction of the body footprint; the raised blob (above the presence
+    threshold) found near the nominal body, its size relative to the body (presence)
+    and centroid offset (BOARD frame); for chips the tilt of a plane fitted to the body
+    top and the area standing far above the nominal top (an upright, tombstoned part).
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from ._config import InspectConfig
+from ._features import body_blob
+from ._geometry import apply2d, polygon_mask, world_to_pixel
+from ._reference import body_top_mm
+
+__all__ = ["ComponentMeasurement", "JointMeasurement", "MeasureContext", "measure_board"]
+
+NAN = float("nan")
+
+
+@dataclass
+class JointMeasurement:
+    """Raw numbers of one joint (before any rule is applied)."""
+
+    joint_id: str
+    world_xy_mm: tuple[float, float]
+    n_pixels: int
+    reliable_fraction: float
+    max_mm: float = NAN
+    max_method: str = ""            # "meniscus", "percentile", "foot", "side"
+    mean_mm: float = NAN
+    u_max_mm: float = NAN
+    u_mean_mm: float = NAN
+    volume_mm3: float = NAN
+    u_volume_mm3: float = NAN
+    area_mm2: float = NAN
+    u_area_mm2: float = NAN
+    lead_mm: float = NAN            # gull-wing: the lead's own height (toe half of the foot)
+    foot_reliable_fraction: float = NAN
+    foot_mm: float = NAN            # gull-wing: percentile over the foot
+    side_mm: float = NAN            # gull-wing: percentile over the side region
+    cap_mm: float = NAN             # chip: end-cap top above its nominal height
+    bare_fraction: float = NAN      # visible pad looking like bare finish (colour)
+    gap_mm: float = NAN             # highest covered level towards a neighbour
+    gap_neighbour: str = ""
+    gap_fraction: float = NAN
+    level_mm: float = 0.0           # local board level removed
+    polygon_px: np.ndarray | None = field(default=None, repr=False)
+
+
+@dataclass
+class ComponentMeasurement:
+    ref: str
+    reliable_fraction: float
+    present_fraction: float
+    body_height_mm: float
+    offset_mm: tuple[float, float]
+    tilt_deg: float
+    standing_fraction: float
+    n_pixels: int
+
+
+@dataclass
+class MeasureContext:
+    """The maps every measurement reads.
+
+    Attributes
+    ----------
+    height : (H, W) float64
+        Heights above the global board plane (mm).
+    reliable : (H, W) bool
+    u_px : (H, W) float64
+        Per-pixel height uncertainty (mm; NaN when unknown).
+    bare : (H, W) bool
+        Reliable pixels of the bare board (outside every footprint).
+    T : (3, 3)
+        Placement WORLD = T · BOARD.
+    p : float
+        Pixel size (mm).
+    u_plane_mm : float
+        Uncertainty of the global plane's level.
+    chroma : (H, W) float32 or None
+        (R − B) / (R + G + B) of the all-in-focus image (None for grey images).
+    bare_chroma : float
+        Chroma of the bare pad finish (fiducials); NaN when unknown or neutral.
+    """
+
+    height: np.ndarray
+    reliable: np.ndarray
+    u_px: np.ndarray
+    bare: np.ndarray
+    T: np.ndarray
+    p: float
+    u_plane_mm: float
+    chroma: np.ndarray | None = None
+    bare_chroma: float = NAN
+
+    @property
+    def shape(self) -> tuple[int, int]:
+        return self.height.shape  # type: ignore[return-value]
+
+    def to_px(self, poly_board: np.ndarray) -> np.ndarray:
+        """BOARD polygon → image (col, row)."""
+        return world_to_pixel(apply2d(self.T, poly_board), shape=self.shape, pixel_size_mm=self.p)
+
+    def mask(self, poly_board: np.ndarray) -> np.ndarray:
+        return polygon_mask(self.to_px(poly_board), self.shape)
+
+    def board_to_px(self, xy_board) -> np.ndarray:
+        return self.to_px(np.asarray(xy_board, np.float64).reshape(-1, 2))
+
+    def px_to_board(self, cols, rows) -> np.ndarray:
+        H = self.shape[0]
+        world = np.column_stack([np.asarray(cols, np.float64) * self.p,
+                                 (H - 1 - np.asarray(rows, np.float64)) * self.p])
+        return apply2d(np.linalg.inv(self.T), world)
+
+
+def pixel_uncertainty(sigma_mm: np.ndarray, step_mm: float, focus_noise: float) -> np.ndarray:
+    """``u = σ_F² · ε / (√2 · Δd)`` per pixel (mm); NaN where σ_F is not finite."""
+    s = np.asarray(sigma_mm, np.float64)
+    if not (step_mm and np.isfinite(step_mm) and step_mm > 0):
+        return np.full(s.shape, NAN)
+    return s * s * float(focus_noise) / (math.sqrt(2.0) * float(step_mm))
+
+
+def chroma_map(aif: np.ndarray) -> np.ndarray | None:
+    """``(R − B) / (R + G + B)`` of an RGB image (None for grey ones)."""
+    img = np.asarray(aif)
+    if img.ndim != 3 or img.shape[2] != 3:
+        return None
+    f = img.astype(np.float32)
+    s = f.sum(axis=2)
+    return np.where(s > 0, (f[:, :, 0] - f[:, :, 2]) / np.maximum(s, 1e-6), 0.0).astype(np.float32)
+
+
+def fiducial_chroma(board, T, chroma: np.ndarray | None, p: float) -> float:
+    """Median chroma inside the fiducials (the bare pad finish); NaN when unusable."""
+    if chroma is None or not board.fiducials:
+        return NAN
+    vals = []
+    shape = chroma.shape
+    for f in board.fiducials:
+        r = 0.35 * f.diameter_mm
+        t = np.linspace(0, 2 * np.pi, 32, endpoint=False)
+        circ = np.column_stack([f.x_mm + r * np.cos(t), f.y_mm + r * np.sin(t)])
+        m = polygon_mask(world_to_pixel(apply2d(T, circ), shape=shape, pixel_size_mm=p), shape)
+        if m.sum() >= 5:
+            vals.append(chroma[m])
+    if not vals:
+        return NAN
+    c = float(np.median(np.concatenate(vals)))
+    return c if abs(c) >= 0.08 else NAN
+
+
+def _dilate(mask: np.ndarray, radius_px: float) -> np.ndarray:
+    import cv2
+
+    r = int(math.ceil(radius_px))
+    if r <= 0:
+        return mask
+    k = cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (2 * r + 1, 2 * r + 1))
+    return cv2.dilate(mask.astype(np.uint8), k).astype(bool)
+
+
+def _erode(mask: np.ndarray, radius_px: float) -> np.ndarray:
+    import cv2
+
+    r = int(math.ceil(radius_px))
+    if r <= 0:
+        return mask
+    k = cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (2 * r + 1, 2 * r + 1))
+    return cv2.erode(mask.astype(np.uint8), k).astype(bool)
+
+
+def _rss(values: np.ndarray) -> float:
+    v = values[np.isfinite(values)]
+    return float(np.sqrt(np.sum(v * v))) if v.size else NAN
+
+
+def _hypot(*vals: float) -> float:
+    v = [x for x in vals if np.isfinite(x)]
+    return float(math.sqrt(sum(x * x for x in v))) if v else NAN
+
+
+def footprints(board, ctx: MeasureContext, margin_px: float) -> dict[str, np.ndarray]:
+    """Mask per component of everything it puts on the board (body, leads, pads), grown."""
+    out = {}
+    for comp in board.components:
+        m = ctx.mask(comp.body_polygon_mm())
+        for j in comp.joints:
+            m |= ctx.mask(j.polygon_mm)
+            if comp.kind == "gullwing":
+                m |= ctx.mask(comp.termination_polygon_mm(j.id))
+        out[comp.ref] = _dilate(m, margin_px)
+    return out
+
+
+# --------------------------------------------------------------------------------------
+# A component's window: every pixel near it in component-local coordinates.
+# --------------------------------------------------------------------------------------
+
+
+class _Win:
+    """Pixels of a rectangle around a component, with component-local coordinates."""
+
+    def __init__(self, comp, ctx: MeasureContext, level: float, grow_mm: float):
+        pts = [comp.body_polygon_mm()] + [j.polygon_mm for j in comp.joints]
+        if comp.kind == "gullwing":
+            pts += [comp.termination_polygon_mm(j.id) for j in comp.joints]
+        px = ctx.board_to_px(np.vstack(pts))
+        g = grow_mm / ctx.p + 2
+        H, W = ctx.shape
+        c0 = int(max(math.floor(px[:, 0].min() - g), 0))
+        c1 = int(min(math.ceil(px[:, 0].max() + g) + 1, W))
+        r0 = int(max(math.floor(px[:, 1].min() - g), 0))
+        r1 = int(min(math.ceil(px[:, 1].max() + g) + 1, H))
+        self.sl = (slice(r0, max(r1, r0)), slice(c0, max(c1, c0)))
+        self.origin = np.array([c0, r0], np.float64)
+        rows, cols = np.mgrid[r0:max(r1, r0), c0:max(c1, c0)]
+        self.shape = rows.shape
+        b = ctx.px_to_board(cols.ravel(), rows.ravel())
+        loc = comp.to_local(b)
+        self.lx = loc[:, 0].reshape(self.shape)
+        self.ly = loc[:, 1].reshape(self.shape)
+        self.h = ctx.height[self.sl] - level
+        self.rel = ctx.reliable[self.sl]
+        self.u = ctx.u_px[self.sl]
+        self.chroma = None if ctx.chroma is None else ctx.chroma[self.sl]
+        self.ctx = ctx
+        self.comp = comp
+
+    def mask(self, poly_board) -> np.ndarray:
+        px = self.ctx.board_to_px(poly_board) - self.origin
+        return polygon_mask(px, self.shape)
+
+    def axes(self, joint):
+        """(u, v, out_local, across_local, q0): coordinates along the joint's outward
+        direction (from the component centre) and across it (from the pad's centre)."""
+        a = math.radians(self.comp.rotation_deg)
+        ob = np.asarray(joint.outward, np.float64)
+        out = np.array([math.cos(a) * ob[0] + math.sin(a) * ob[1],
+                        -math.sin(a) * ob[0] + math.cos(a) * ob[1]])
+        acr = np.array([-out[1], out[0]])
+        c = self.comp.to_local([joint.center_mm])[0]
+        q0 = float(c @ acr)
+        u = self.lx * out[0] + self.ly * out[1]
+        v = self.lx * acr[0] + self.ly * acr[1] - q0
+        return u, v, out, acr, q0
+
+
+def measure_board(board, ctx: MeasureContext, config: InspectConfig):
+    """Measure every joint and component.
+
+    Returns
+    -------
+    joints : dict[str, JointMeasurement]
+    components : dict[str, ComponentMeasurement]
+    """
+    joints: dict[str, JointMeasurement] = {}
+    comps: dict[str, ComponentMeasurement] = {}
+    for comp in board.components:
+        level, u_level = _local_level(comp, ctx, config)
+        win = _Win(comp, ctx, level, grow_mm=max(config.local_plane_radius_mm, 0.5))
+        comps[comp.ref] = _measure_body(comp, ctx, win, level, config)
+        for j in comp.joints:
+            if comp.kind == "gullwing" and comp.lead:
+                joints[j.id] = _measure_gullwing(comp, j, win, config, level, u_level)
+            else:
+                joints[j.id] = _measure_chip(comp, j, win, config, level, u_level)
+        _measure_gaps(comp, win, config, joints)
+    return joints, comps
+
+
+def _local_level(comp, ctx: MeasureContext, config: InspectConfig) -> tuple[float, float]:
+    """Median height of bare-board pixels near the component (and its uncertainty)."""
+    polys = [comp.body_polygon_mm()] + [j.polygon_mm for j in comp.joints]
+    pts = np.vstack(polys)
+    lo, hi = pts.min(axis=0) - config.local_plane_radius_mm, pts.max(axis=0) + config.local_plane_radius_mm
+    box = np.array([[lo[0], lo[1]], [hi[0], lo[1]], [hi[0], hi[1]], [lo[0], hi[1]]])
+    near = ctx.mask(box) & ctx.bare
+    vals = ctx.height[near]
+    if vals.size < 30:
+        return 0.0, ctx.u_plane_mm
+    med = float(np.median(vals))
+    mad = float(np.median(np.abs(vals - med))) * 1.4826
+    return med, _hypot(1.2533 * mad / math.sqrt(vals.size), ctx.u_plane_mm)
+
+
+def _percentile_max(h: np.ndarray, u: np.ndarray, pct: float) -> tuple[float, float]:
+    v = float(np.percentile(h, pct))
+    top = h >= v - 1e-12
+    ut = u[top]
+    return v, (float(np.nanmedian(ut)) if np.isfinite(ut).any() else NAN)
+
+
+def _summaries(m: JointMeasurement, h: np.ndarray, u: np.ndarray, n_area: int, n_rel: int,
+               p: float, config: InspectConfig, u_level: float) -> None:
+    """Mean, volume and area of the solder area's reliable heights ``h``."""
+    if n_rel == 0:
+        return
+    m.mean_mm = float(np.mean(h))
+    m.u_mean_mm = _hypot(_rss(u) / n_rel, u_level)
+    px_area = p * p
+    scale = n_area / n_rel
+    covered = h > config.solder_min_height_mm
+    m.volume_mm3 = float(np.clip(h, 0.0, None).sum() * px_area * scale)
+    m.area_mm2 = float(covered.sum() * px_area * scale)
+    m.u_volume_mm3 = _hypot(_rss(u) * px_area * scale, u_level * m.area_mm2)
+    near = np.abs(h - config.solder_min_height_mm) <= np.where(np.isfinite(u), u, 0.0)
+    m.u_area_mm2 = float(near.sum() * px_area * scale)
+
+
+def _bare_fraction(win: _Win, region: np.ndarray) -> float:
+    ctx = win.ctx
+    if win.chroma is None or not np.isfinite(ctx.bare_chroma) or region.sum() < 5:
+        return NAN
+    c = win.chroma[region]
+    return float(np.mean(np.abs(c - ctx.bare_chroma) < np.abs(c)))
+
+
+def _new(joint, win: _Win, pad: np.ndarray, level: float) -> JointMeasurement:
+    ctx = win.ctx
+    centre_w = apply2d(ctx.T, np.array([joint.center_mm]))[0]
+    return JointMeasurement(joint.id, (float(centre_w[0]), float(centre_w[1])), int(pad.sum()),
+                            0.0, level_mm=level, polygon_px=ctx.board_to_px(joint.polygon_mm))
+
+
+def _measure_chip(comp, joint, win: _Win, config: InspectConfig, level: float,
+                  u_level: float) -> JointMeasurement:
+    p = win.ctx.p
+    pad = win.mask(joint.polygon_mm)
+    u, v, out, acr, q0 = win.axes(joint)
+    hl, hw = comp.body_length_mm / 2.0, comp.body_width_mm / 2.0
+    mg = config.body_margin_mm
+    v_body = win.ly   # across the body axis
+    grown_body = (np.abs(win.lx) <= hl + mg) & (np.abs(win.ly) <= hw + mg)
+    area = pad & ~grown_body
+    m = _new(joint, win, area, level)
+    rel = area & win.rel
+    n, n_rel = int(area.sum()), int(rel.sum())
+    m.reliable_fraction = n_rel / n if n else 0.0
+    visible = pad & ~((np.abs(win.lx) <= hl) & (np.abs(win.ly) <= hw))
+    m.bare_fraction = _bare_fraction(win, _erode(visible, 1))
+    # End cap: the termination's top, away from the body edge.
+    t = comp.termination_length_mm
+    cap = (u >= hl - t + mg) & (u <= hl - mg) & (np.abs(v_body) <= hw - mg) & win.rel
+    top = body_top_mm(comp)
+    if cap.sum() >= 5:
+        m.cap_mm = float(np.percentile(win.h[cap], 90)) - top
+    if n_rel < 3:
+        return m
+    h, uu = win.h[rel], win.u[rel]
+    _summaries(m, h, uu, n, n_rel, p, config, u_level)
+    pct, u_pct = _percentile_max(h, uu, config.height_percentile)
+    m.max_mm, m.u_max_mm, m.max_method = pct, _hypot(u_pct, u_level), "percentile"
+    if config.fillet_model == "meniscus":
+        pad_u = comp.to_local(joint.polygon_mm) @ out
+        length = float(pad_u.max()) - hl
+        end = rel & (u >= hl + mg) & (u <= hl + length) & (np.abs(v_body) <= hw)
+        if length > 2 * mg and end.sum() >= 8:
+            d = u[end] - hl
+            g = (1.0 - d / length) ** 2
+            z = win.h[end]
+            uz = win.u[end]
+            keep = np.ones(len(z), bool)
+            F = se = NAN
+            for _ in range(3):
+                gk, zk = g[keep], z[keep]
+                den = float(np.sum(gk * gk))
+                if keep.sum() < 8 or den <= 0:
+                    break
+                F = float(np.sum(gk * zk) / den)
+                r = z - F * g
+                s = 1.4826 * float(np.median(np.abs(r[keep]))) + 1e-4
+                se = float(np.sqrt(np.sum(r[keep] ** 2) / max(keep.sum() - 1, 1) / den))
+                new = np.abs(r) <= 3 * s
+                if np.array_equal(new, keep):
+                    break
+                keep = new
+            if np.isfinite(F):
+                gk = g[keep]
+                uf = float(np.sqrt(np.nansum(gk ** 2 * uz[keep] ** 2)) / np.sum(gk ** 2)) \
+                    if np.isfinite(uz[keep]).any() else NAN
+                m.max_mm, m.u_max_mm, m.max_method = F, _hypot(se, uf, u_level), "meniscus"
+    return m
+
+
+def _measure_gullwing(comp, joint, win: _Win, config: InspectConfig, level: float,
+                      u_level: float) -> JointMeasurement:
+    p = win.ctx.p
+    lead = comp.lead
+    pad = win.mask(joint.polygon_mm)
+    u, v, out, acr, q0 = win.axes(joint)
+    toe = float(lead["span_mm"]) / 2.0
+    heel = toe - float(lead["foot_length_mm"])
+    b2 = float(lead["width_mm"]) / 2.0
+    g_t = float(lead.get("solder_thickness_mm", 0.0)) + float(lead["thickness_mm"])
+    half_body = float(np.abs((comp.body_polygon_mm() - [comp.x_mm, comp.y_mm]) @ np.asarray(joint.outward)).max())
+    mg = config.body_margin_mm
+    foot = (u >= heel + mg) & (u <= toe - p) & (np.abs(v) <= b2 - p)
+    lead_grown = (u >= half_body - p) & (u <= toe + p) & (np.abs(v) <= b2 + p)
+    side = pad & ~lead_grown & (u >= half_body + mg)
+    region = side | foot
+    m = _new(joint, win, region, level)
+    rel = region & win.rel
+    n, n_rel = int(region.sum()), int(rel.sum())
+    m.reliable_fraction = n_rel / n if n else 0.0
+    m.bare_fraction = _bare_fraction(win, _erode(pad & ~lead_grown & (u >= half_body), 1))
+    fr = foot & win.rel
+    m.foot_reliable_fraction = float(fr.sum() / max(foot.sum(), 1))
+    if fr.sum() >= 5:
+        m.foot_mm, u_foot = _percentile_max(win.h[fr], win.u[fr], config.height_percentile)
+        toe_half = fr & (u >= 0.5 * (heel + toe))
+        if toe_half.sum() >= 3:
+            m.lead_mm = float(np.median(win.h[toe_half]))
+    else:
+        u_foot = NAN
+    sr = side & win.rel
+    u_side = NAN
+    if sr.sum() >= 3:
+        m.side_mm, u_side = _percentile_max(win.h[sr], win.u[sr], config.height_percentile)
+    if n_rel < 3:
+        return m
+    # Solder: the side region, plus what stands above the nominal lead top on the foot.
+    hs = win.h[sr]
+    hf = np.clip(win.h[fr] - g_t, 0.0, None)
+    _summaries(m, np.concatenate([hs, hf]), np.concatenate([win.u[sr], win.u[fr]]), n, n_rel,
+               p, config, u_level)
+    if np.isfinite(m.foot_mm) and m.foot_mm > g_t + 0.02:
+        m.max_mm, m.u_max_mm, m.max_method = m.foot_mm, _hypot(u_foot, u_level), "foot"
+    elif np.isfinite(m.side_mm):
+        m.max_mm, m.u_max_mm, m.max_method = m.side_mm, _hypot(u_side, u_level), "side"
+    return m
+
+
+# --------------------------------------------------------------------------------------
+# Gaps between pads (bridges).
+# --------------------------------------------------------------------------------------
+
+
+def _path_level(h: np.ndarray, valid: np.ndarray, axis: int, config: InspectConfig):
+    """Best covered level over the paths of a (n_paths × n_along) grid."""
+    best_z, best_f = NAN, NAN
+    hh = h if axis == 1 else h.T
+    vv = valid if axis == 1 else valid.T
+    for k in range(hh.shape[0]):
+        ok = vv[k]
+        if ok.sum() < max(3, 0.5 * ok.size):
+            continue
+        vals = hh[k][ok]
+        z = float(np.quantile(vals, 1.0 - config.bridge_min_fraction))
+        if not np.isfinite(best_z) or z > best_z:
+            best_z, best_f = z, float(np.mean(vals > config.bridge_height_mm))
+    return best_z, best_f
+
+
+def _record(joints, a: str, b: str, z: float, f: float) -> None:
+    if not np.isfinite(z):
+        return
+    for jid, other in ((a, b), (b, a)):
+        m = joints[jid]
+        if not np.isfinite(m.gap_mm) or z > m.gap_mm:
+            m.gap_mm, m.gap_neighbour, m.gap_fraction = z, other, f
+
+
+def _measure_gaps(comp, win: _Win, config: InspectConfig, joints: dict[str, JointMeasurement]) -> None:
+    """Solder across the gaps between neighbouring pads of one component (see module doc)."""
+    p = win.ctx.p
+    gm, mg = config.gap_margin_mm, config.body_margin_mm
+    hl, hw = comp.body_length_mm / 2.0, comp.body_width_mm / 2.0
+    body_grown = (np.abs(win.lx) <= hl + mg) & (np.abs(win.ly) <= hw + mg)
+    if comp.kind == "chip" and len(comp.joints) == 2:
+        # Along both long sides of the body, between the two pads' inner edges.
+        a, b = comp.joints
+        inner = []
+        for j in (a, b):
+            loc = comp.to_local(j.polygon_mm)
+            inner.append(float(np.min(np.abs(loc[:, 0]))))
+        x_lim = min(inner) - gm
+        if x_lim <= 2 * p:
+            return
+        xs = np.arange(-x_lim, x_lim + 1e-9, p)
+        for side in (-1.0, 1.0):
+            ys = side * (hw + mg + np.arange(0.0, 0.1 + 1e-9, p))
+            z, f = _sample_paths(win, comp, xs, ys, body_grown, config)
+            _record(joints, a.id, b.id, z, f)
+        return
+    groups: dict[tuple[float, float], list] = {}
+    for j in comp.joints:
+        key = (round(j.outward[0], 3), round(j.outward[1], 3))
+        groups.setdefault(key, []).append(j)
+    lead = comp.lead or {}
+    b2 = float(lead.get("width_mm", 0.0)) / 2.0
+    for key, js in groups.items():
+        out_b = np.array(key, np.float64)
+        out_b /= np.linalg.norm(out_b)
+        acr_b = np.array([-out_b[1], out_b[0]])
+        js = sorted(js, key=lambda j: float(np.dot(j.center_mm, acr_b)))
+        half_body = float(np.abs((comp.body_polygon_mm() - [comp.x_mm, comp.y_mm]) @ out_b).max())
+        for a, b in zip(js[:-1], js[1:]):
+            pa, pb = np.asarray(a.polygon_mm), np.asarray(b.polygon_mm)
+            cc = np.array([comp.x_mm, comp.y_mm])
+            u0 = max(float(((pa - cc) @ out_b).min()), float(((pb - cc) @ out_b).min()), half_body + mg)
+            u1 = min(float(((pa - cc) @ out_b).max()), float(((pb - cc) @ out_b).max()))
+            # Between the pads, clear of both pads and of the leads on them.
+            ca, cb = float(np.dot(a.center_mm, acr_b)), float(np.dot(b.center_mm, acr_b))
+            v0 = max(float((pa @ acr_b).max()), ca + b2) + gm
+            v1 = min(float((pb @ acr_b).min()), cb - b2) - gm
+            if u1 - u0 < 2 * p or v1 - v0 < 2 * p:
+                continue
+            us = np.arange(u0 + p / 2, u1, p)
+            vs = np.arange(v0, v1 + 1e-9, p / 2)
+            pts = (cc[None, None, :] + out_b[None, None, :] * us[:, None, None]
+                   + acr_b[None, None, :] * vs[None, :, None])
+            z, f = _sample_board(win, pts, body_grown, config)
+            _record(joints, a.id, b.id, z, f)
+
+
+def _sample_paths(win: _Win, comp, xs, ys, exclude, config):
+    """Sample the grid of component-local points (paths along x, one per y)."""
+    gx, gy = np.meshgrid(xs, ys)           # rows: paths (one y each), cols: along x
+    pts = comp.to_board(np.column_stack([gx.ravel(), gy.ravel()])).reshape(gx.shape + (2,))
+    return _sample_board(win, pts, exclude, config)
+
+
+def _sample_board(win: _Win, pts: np.ndarray, exclude: np.ndarray, config: InspectConfig):
+    """Paths are the rows of the BOARD point grid ``pts`` (n_paths, n_along, 2)."""
+    shp = pts.shape[:2]
+    cr = win.ctx.board_to_px(pts.reshape(-1, 2)) - win.origin
+    c = np.round(cr[:, 0]).astype(int)
+    r = np.round(cr[:, 1]).astype(int)
+    H, W = win.shape
+    inside = (c >= 0) & (c < W) & (r >= 0) & (r < H)
+    c, r = np.clip(c, 0, W - 1), np.clip(r, 0, H - 1)
+    valid = (inside & win.rel[r, c] & ~exclude[r, c]).reshape(shp)
+    h = np.where(valid, win.h[r, c].reshape(shp), np.nan)
+    return _path_level(h, valid, 1, config)
+
+
+# --------------------------------------------------------------------------------------
+# Bodies.
+# --------------------------------------------------------------------------------------
+
+
+def _measure_body(comp, ctx: MeasureContext, win: _Win, level: float,
+                  config: InspectConfig) -> ComponentMeasurement:
+    """Presence, centroid offset, tilt and upright area of the component body.
+
+    The raised body is searched in a window around the nominal body (grown by twice
+    the shift tolerance + 0.2 mm): the connected blob of pixels above the presence
+    threshold that overlaps the nominal body most, holes filled
+    (:func:`._features.body_blob`). Presence is the blob's reliable pixels relative to
+    the reliable pixels of the nominal body, so a shifted body still counts as present.
+    """
+    p = ctx.p
+    hl, hw = comp.body_length_mm / 2.0, comp.body_width_mm / 2.0
+    mg = config.body_margin_mm
+    inner = (np.abs(win.lx) <= hl - mg) & (np.abs(win.ly) <= hw - mg)
+    n = int(inner.sum())
+    rel = inner & win.rel
+    n_rel = int(rel.sum())
+    frac = float(n_rel / n) if n else 0.0
+    h = ctx.height - level
+    radius = max(config.shift_tol_mm, config.shift_tol_fraction * comp.body_width_mm) * 2 + 0.2
+    blob = body_blob(comp, h, ctx.reliable, ctx.T, p, search_mm=radius)
+    if blob is None:
+        blob = np.zeros(ctx.shape, bool)
+    br = blob & ctx.reliable
+    present = float(min(1.0, br.sum() / n_rel)) if n_rel else 0.0
+    body_h = float(np.median(h[br])) if br.any() else NAN
+    offset = (NAN, NAN)
+    if blob.sum() >= 10:
+        rows, cols = np.nonzero(blob)
+        cen = ctx.px_to_board([cols.mean()], [rows.mean()])[0]
+        offset = (float(cen[0] - comp.x_mm), float(cen[1] - comp.y_mm))
+    tilt = NAN
+    standing = 0.0
+    if comp.kind == "chip":
+        tilt = _body_tilt(win, rel)
+        # An upright part stands far above the nominal top over much of its footprint.
+        top = body_top_mm(comp)
+        near = (np.abs(win.lx) <= hl + 0.1) & (np.abs(win.ly) <= hw + 0.1) & win.rel
+        tall = near & (win.h > top + max(0.2, 0.3 * comp.body_height_mm))
+        standing = float(tall.sum() * p * p / (comp.body_length_mm * comp.body_width_mm))
+    return ComponentMeasurement(comp.ref, frac, present, body_h, offset, tilt, standing, n)
+
+
+def _body_tilt(win: _Win, rel: np.ndarray) -> float:
+    """Tilt (deg) along the component's axis of a plane fitted to the raised body pixels.
+
+    Pixels of the footprint lower than 0.1 mm are left out (a tombstoned chip's lower
+    end exposes the pad); the fit is a robust least-squares plane (two passes)."""
+    sel = rel & (win.h > 0.1)
+    if sel.sum() < 10:
+        return NAN
+    x, y, z = win.lx[sel], win.ly[sel], win.h[sel]
+    A = np.column_stack([x, y, np.ones(len(z))])
+    keep = np.ones(len(z), bool)
+    coef = np.zeros(3)
+    for _ in range(2):
+        coef = np.linalg.lstsq(A[keep], z[keep], rcond=None)[0]
+        res = z - A @ coef
+        s = 1.4826 * np.median(np.abs(res[keep])) + 1e-6
+        keep = np.abs(res) <= 3 * s
+        if keep.sum() < 10:
+            break
+    return float(math.degrees(math.atan(abs(coef[0]))))

@@ -1,0 +1,175 @@
+"""End to end: a focal stack (or a reconstruction) + a board file → reports.
+
+:func:`inspect_stack` reconstructs the surface (:func:`smdinspect.sff.reconstruct`),
+writes the reconstruction outputs (height map, confidence, all-in-focus image, cloud,
+mesh), locates the board and judges every joint
+(:func:`smdinspect.inspect.inspect_surface`), then writes ``report.json``,
+``joints.csv``, ``junit.xml`` and ``report.html`` into ``out_dir``, each atomically.
+"""
+
+from __future__ import annotations
+
+import json
+import logging
+import os
+import shutil
+import tempfile
+from pathlib import Path
+from typing import Callable
+
+import numpy as np
+
+from .errors import BoardNotLocatedError, InputError
+
+__all__ = ["RECONSTRUCTION_FILES", "inspect_stack", "is_reconstruction", "load_reconstruction"]
+
+log = logging.getLogger(__name__)
+
+#: Files that make a directory a reconstruction (as written by ``smdinspect reconstruct``).
+RECONSTRUCTION_FILES = ("height_mm.tiff", "confidence.tiff", "summary.json")
+
+
+def is_reconstruction(path: str | os.PathLike) -> bool:
+    """Whether ``path`` is a reconstruction output directory."""
+    p = Path(path)
+    return p.is_dir() and all((p / f).is_file() for f in RECONSTRUCTION_FILES)
+
+
+def load_reconstruction(path: str | os.PathLike, *, pixel_size_mm: float | None = None):
+    """Read a reconstruction directory back into a :class:`~smdinspect.sff.Surface`.
+
+    ``reliable`` is ``confidence >= min_confidence`` of the settings in
+    ``summary.json`` (0.5 when absent). ``sigma_mm.tiff`` is read when present, else the
+    focus-curve widths are unknown (NaN) and so are the height uncertainties.
+    """
+    import tifffile
+
+    from .sff import Surface
+    from .stack import read_image
+
+    root = Path(path)
+    if not is_reconstruction(root):
+        missing = [f for f in RECONSTRUCTION_FILES if not (root / f).is_file()]
+        raise InputError(f"{root} is not a reconstruction directory (missing {', '.join(missing)})")
+    try:
+        summary = json.loads((root / "summary.json").read_text(encoding="utf-8"))
+        height = np.asarray(tifffile.imread(root / "height_mm.tiff"), np.float32)
+        conf = np.asarray(tifffile.imread(root / "confidence.tiff"), np.float32)
+    except (OSError, ValueError) as exc:
+        raise InputError(f"{root}: cannot read the reconstruction: {exc}") from exc
+    if height.shape != conf.shape or height.ndim != 2:
+        raise InputError(f"{root}: height_mm.tiff {height.shape} and confidence.tiff "
+                         f"{conf.shape} must be (H, W) of one shape")
+    min_conf = float((summary.get("config") or {}).get("min_confidence", 0.5))
+    sigma = np.full(height.shape, np.nan, np.float32)
+    if (root / "sigma_mm.tiff").is_file():
+        sigma = np.asarray(tifffile.imread(root / "sigma_mm.tiff"), np.float32)
+    aif = read_image(root / "aif.png") if (root / "aif.png").is_file() else \
+        np.zeros(height.shape, np.uint8)
+    p = pixel_size_mm if pixel_size_mm is not None else summary.get("pixel_size_mm")
+    if summary.get("xy_units") == "px" and pixel_size_mm is None:
+        p = None
+    z0, z1 = (summary.get("z_range_mm") or [0.0, 0.0])
+    step = summary.get("step_mm") or 0.0
+    z = np.arange(z0, z1 + step / 2, step) if step and z1 > z0 else np.array([z0, z1], float)
+    reliable = (conf >= min_conf) & np.isfinite(height)
+    return Surface(height_mm=height, confidence=conf, reliable=reliable,
+                   f_peak=np.full(height.shape, np.nan, np.float32), sigma_mm=sigma,
+                   reliability_db=np.full(height.shape, np.nan, np.float32), aif=aif,
+                   pixel_size_mm=None if p is None else float(p), z_mm=z,
+                   meta={"loaded_from": str(root), **summary})
+
+
+def inspect_stack(
+    stack,
+    board,
+    out_dir: str | os.PathLike,
+    *,
+    focus_config=None,
+    inspect_config=None,
+    keep_unreliable: bool = False,
+    progress: Callable[[int, int], None] | None = None,
+    html: bool = True,
+    source: str | None = None,
+):
+    """Reconstruct, locate, measure, judge and report one board.
+
+    Parameters
+    ----------
+    stack : FocalStack, Surface, or path
+        A :class:`~smdinspect.stack.FocalStack`, a stack directory (``stack.json``), a
+        reconstruction directory (see :func:`load_reconstruction`; then nothing is
+        reconstructed) or an already reconstructed :class:`~smdinspect.sff.Surface`.
+    board : Board or path
+        The reference board or its file.
+    out_dir : path
+        Receives the reconstruction outputs (unless the input was one) and the reports.
+    focus_config : FocusConfig, optional
+    inspect_config : InspectConfig, optional
+    keep_unreliable : bool
+        Keep unreliable points in the exported cloud and mesh.
+    progress : callable(done, total), optional
+        Called once per frame while reconstructing.
+    html : bool
+        Write ``report.html`` too.
+    source : str, optional
+        What the measurement came from, for the reports (default: the stack's path).
+
+    Returns
+    -------
+    InspectionResult
+        ``result.exit_code`` is 0 when no joint is defective, 1 otherwise.
+
+    Raises
+    ------
+    BoardNotLocatedError
+        The board was not found (exit code 3); ``report.json`` with ``"status":
+        "not_located"`` and the reason is written first.
+    InputError
+        Bad stack, board file or settings.
+    """
+    from .inspect import load_board
+    from .inspect._inspect import inspect_surface
+    from .inspect._report import write_not_located, write_reports
+    from .sff import Surface, reconstruct, write_reconstruction
+    from .stack import FocalStack
+
+    out = Path(out_dir)
+    if out.exists() and not out.is_dir():
+        raise InputError(f"--out {out} exists and is not a directory")
+    if not hasattr(board, "components"):
+        board = load_board(board)
+    surface = None
+    if isinstance(stack, Surface):
+        surface = stack
+        source = source or str(stack.meta.get("loaded_from", "<surface>"))
+    elif isinstance(stack, FocalStack):
+        source = source or (str(stack.root) if stack.root is not None else "<image list>")
+    elif isinstance(stack, (str, os.PathLike)):
+        source = source or str(stack)
+        if is_reconstruction(stack):
+            surface = load_reconstruction(stack)
+        else:
+            stack = FocalStack.open(stack)
+    else:
+        raise InputError(f"stack must be a FocalStack, a Surface or a path; got {type(stack).__name__}")
+    out.mkdir(parents=True, exist_ok=True)
+    if surface is None:
+        surface = reconstruct(stack, focus_config, progress=progress)
+        _write_reconstruction(write_reconstruction, surface, out, keep_unreliable)
+    try:
+        result = inspect_surface(surface, board, inspect_config)
+    except BoardNotLocatedError as exc:
+        write_not_located(out, board, getattr(exc, "registration", None), reason=str(exc),
+                          source=source, shape=surface.shape, pixel_size_mm=surface.pixel_size_mm)
+        raise
+    write_reports(result, out, source=source, html_report=html)
+    return result
+
+
+def _write_reconstruction(writer, surface, out: Path, keep_unreliable: bool) -> None:
+    """Write the reconstruction into a temporary sibling folder, then move it in."""
+    with tempfile.TemporaryDirectory(dir=out, prefix=".partial-") as tmp:
+        writer(surface, tmp, keep_unreliable=keep_unreliable)
+        for f in Path(tmp).iterdir():
+            shutil.move(str(f), out / f.name)
