@@ -131,7 +131,8 @@ class PeakFit:
     best_idx: np.ndarray  # int16
 
 
-def fit_peaks(tracker: PeakTracker, z_mm: np.ndarray, *, method: FitMethod) -> PeakFit:
+def fit_peaks(tracker: PeakTracker, z_mm: np.ndarray, *, method: FitMethod,
+              workers: int = 1) -> PeakFit:
     """Fit the Gaussian focus-curve model to the tracked windows.
 
     Parameters
@@ -141,11 +142,32 @@ def fit_peaks(tracker: PeakTracker, z_mm: np.ndarray, *, method: FitMethod) -> P
     z_mm : (n_frames,) float64
         Ascending focused-plane heights of the frames.
     method : FitMethod
+    workers : int
+        Threads; the rows are split into this many blocks (numpy releases the GIL).
     """
+    h = tracker.shape[0]
+    if workers <= 1 or h < 64:
+        return _fit_block(tracker.best_idx, tracker.window, tracker.alternative, tracker.best,
+                          z_mm, k=tracker.k, method=method)
+    from concurrent.futures import ThreadPoolExecutor
+
+    alternative = tracker.alternative
+    edges = np.linspace(0, h, workers + 1).astype(int)
+    with ThreadPoolExecutor(workers) as pool:
+        parts = list(pool.map(
+            lambda r: _fit_block(tracker.best_idx[r[0]:r[1]], tracker.window[:, r[0]:r[1]],
+                                 alternative[r[0]:r[1]], tracker.best[r[0]:r[1]], z_mm,
+                                 k=tracker.k, method=method),
+            zip(edges[:-1], edges[1:])))
+    return PeakFit(**{f: np.concatenate([getattr(p, f) for p in parts])
+                      for f in PeakFit.__dataclass_fields__})
+
+
+def _fit_block(best_idx, window, alternative, best, z_mm, *, k: int, method: FitMethod) -> PeakFit:
+    """:func:`fit_peaks` on one block of rows."""
     z_mm = np.asarray(z_mm, dtype=np.float64)
-    k = tracker.k
     n = len(z_mm)
-    kb = tracker.best_idx
+    kb = best_idx
     z_pad = np.concatenate([np.full(k, np.nan), z_mm, np.full(k, np.nan)])
     z0 = z_mm[kb]
     coarse = z0.astype(np.float32)
@@ -154,7 +176,7 @@ def fit_peaks(tracker: PeakTracker, z_mm: np.ndarray, *, method: FitMethod) -> P
         """(H, W) float32: z of window sample j relative to the best frame (NaN outside)."""
         return (np.take(z_pad, kb + j) - z0).astype(np.float32)
 
-    w = tracker.window
+    w = window
     f0, fm, fp = w[k], w[k - 1], w[k + 1]
     um, up = u_at(k - 1), u_at(k + 1)
     on_edge = (kb == 0) | (kb == n - 1) | ~np.isfinite(fm) | ~np.isfinite(fp)
@@ -203,7 +225,7 @@ def fit_peaks(tracker: PeakTracker, z_mm: np.ndarray, *, method: FitMethod) -> P
         # itself predicts k+½ frames out (the tail of a wide peak is not a second peak).
         step = float(np.median(np.diff(z_mm))) if n > 1 else 1.0
         tail = np.where(inverted | on_edge, 0.0, np.exp(-((k + 0.5) * step) ** 2 / (2 * sigma2)))
-        ambiguity = np.clip(tracker.alternative / np.maximum(tracker.best, _TINY) - tail,
+        ambiguity = np.clip(alternative / np.maximum(best, _TINY) - tail,
                             0, 1).astype(np.float32)
         prominence = np.clip(1.0 - low / np.maximum(f0, _TINY), 0, 1).astype(np.float32)
     return PeakFit(
@@ -215,7 +237,7 @@ def fit_peaks(tracker: PeakTracker, z_mm: np.ndarray, *, method: FitMethod) -> P
         ambiguity=ambiguity,
         prominence=prominence,
         interior=~bad,
-        best_idx=tracker.best_idx,
+        best_idx=best_idx,
     )
 
 

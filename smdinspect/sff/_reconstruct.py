@@ -118,7 +118,7 @@ def reconstruct(
     t_stream = time.perf_counter() - t0
 
     tracker.finish()
-    fit = fit_peaks(tracker, z_mm, method=config.fit)
+    fit = fit_peaks(tracker, z_mm, method=config.fit, workers=config.workers)
     confidence = confidence_map(fit)
     meta: dict = {}
     if aligner is not None:
