@@ -80,6 +80,11 @@ class InspectConfig:
         bare finish, else ``insufficient``.
     fillet_model : FilletModel or str
         ``"meniscus"`` (default) or ``"percentile"``; see :mod:`._measure`.
+    side_fillet_ratio : float
+        Gull-wing: the side fillets' percentile height divided by this estimates the
+        heel fillet height when no solder shows above the lead. A calibration of how
+        much of a narrow strip's height shape from focus reads (0.5 for a 5-px window at
+        20 µm/px on the synthetic boards; ~0.8 on an ideal height map).
     cap_excess_mm : float
         Chips: ``excess`` also when solder covers the end cap higher than this above the
         body top.
@@ -163,6 +168,7 @@ class InspectConfig:
     bare_missing_fraction: float = 0.5
     fillet_model: FilletModel = FilletModel.MENISCUS
     cap_excess_mm: float = 0.05
+    side_fillet_ratio: float = 0.5
     standing_fraction: float = 0.15
     solder_min_height_mm: float = 0.02
     body_margin_mm: float = 0.08
@@ -205,6 +211,7 @@ class InspectConfig:
                      "icp_distance_mm", "focus_noise"):
             _check_number(name, getattr(self, name), 0.0, lo_open=True)
         _check_number("cap_excess_mm", self.cap_excess_mm, 0.0, lo_open=True)
+        _check_number("side_fillet_ratio", self.side_fillet_ratio, 0.0, 1.0, lo_open=True)
         for name in ("bridge_min_fraction", "component_present_fraction", "min_match_score",
                      "bare_missing_fraction", "standing_fraction",
                      "min_fitness", "shift_tol_fraction"):
