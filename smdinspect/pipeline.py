@@ -21,7 +21,13 @@ import numpy as np
 
 from .errors import BoardNotLocatedError, InputError
 
-__all__ = ["RECONSTRUCTION_FILES", "inspect_stack", "is_reconstruction", "load_reconstruction"]
+__all__ = [
+    "RECONSTRUCTION_FILES",
+    "inspect_stack",
+    "inspection_focus_config",
+    "is_reconstruction",
+    "load_reconstruction",
+]
 
 log = logging.getLogger(__name__)
 
@@ -80,6 +86,19 @@ def load_reconstruction(path: str | os.PathLike, *, pixel_size_mm: float | None 
                    meta={"loaded_from": str(root), **summary})
 
 
+def inspection_focus_config():
+    """The focus settings inspection uses by default: a 5-pixel window.
+
+    Solder fillets are steep and narrow; the reconstruction default (9 px) spreads every
+    body edge over the fillet next to it and smooths the fillet itself. On the synthetic
+    boards (20 µm/px) a 5-px window halved the contaminated band and tracked the fillet
+    profile within ~20 %, while edge pixels came out unreliable instead of wrong.
+    """
+    from .sff import FocusConfig
+
+    return FocusConfig(window_px=5)
+
+
 def inspect_stack(
     stack,
     board,
@@ -105,6 +124,7 @@ def inspect_stack(
     out_dir : path
         Receives the reconstruction outputs (unless the input was one) and the reports.
     focus_config : FocusConfig, optional
+        Default :func:`inspection_focus_config` (5-pixel focus window).
     inspect_config : InspectConfig, optional
     keep_unreliable : bool
         Keep unreliable points in the exported cloud and mesh.
@@ -155,7 +175,7 @@ def inspect_stack(
         raise InputError(f"stack must be a FocalStack, a Surface or a path; got {type(stack).__name__}")
     out.mkdir(parents=True, exist_ok=True)
     if surface is None:
-        surface = reconstruct(stack, focus_config, progress=progress)
+        surface = reconstruct(stack, focus_config or inspection_focus_config(), progress=progress)
         _write_reconstruction(write_reconstruction, surface, out, keep_unreliable)
     try:
         result = inspect_surface(surface, board, inspect_config)

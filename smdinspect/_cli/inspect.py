@@ -31,7 +31,9 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--min-reliable-fraction", type=float, default=None,
                    help="joints with fewer reliable pixels are 'unreliable' (default 0.5)")
     p.add_argument("--no-html", action="store_true", help="skip report.html")
-    p.set_defaults(func=run)
+    # Inspection focuses with a 5-px window by default (steep, narrow fillets; see
+    # smdinspect.pipeline.inspection_focus_config).
+    p.set_defaults(func=run, window_px=5)
 
 
 def inspect_config_from(args: argparse.Namespace):

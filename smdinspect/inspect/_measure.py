@@ -17,7 +17,9 @@ Chip end joint
     3-MAD trimming. The joint's max height is F, the fillet height at the termination,
     which is what IPC-A-610 bounds (``fillet_model="meniscus"``; with
     ``"percentile"``, or when the fit has too few pixels, it is the
-    ``height_percentile`` percentile of the whole solder area instead). Also measured:
+    ``height_percentile`` percentile of the whole solder area instead; also when the
+    fit says the joint is above its band but fits badly — relative RMS residual > 10 %,
+    a bulging, convex fillet — since the concave model then overshoots). Also measured:
     the end cap's top (solder climbing over the termination means excess).
 Gull-wing heel joint
     The lead's foot hides most of the pad, and the heel fillet hides under the lead's
@@ -26,7 +28,7 @@ Gull-wing heel joint
     median (``lead_mm``: the lead's own height); the *side region*: the pad beside the
     foot and beyond the toe (minus the lead grown by one pixel; the knee rises to the
     mould's exit and its blur would read as solder). When solder climbs more than
-    20 µm above the lead's measured top, the foot value is the joint's max height.
+    20 µm above the lead's nominal top, the foot value is the joint's max height.
     Otherwise it is estimated from the side fillets: the side region's percentile
     divided by ``side_fillet_ratio``. This is a calibration, not a model: the strip
     beside a lead (0.09 mm on an SOIC pad) is narrower than the focus window, and
@@ -405,7 +407,8 @@ def _new(joint, win: _Win, pad: np.ndarray, level: float) -> JointMeasurement:
                             0.0, level_mm=level, polygon_px=ctx.board_to_px(joint.polygon_mm))
 
 
-def _meniscus(d: np.ndarray, length: float, z: np.ndarray, uz: np.ndarray) -> tuple[float, float]:
+def _meniscus(d: np.ndarray, length: float, z: np.ndarray, uz: np.ndarray,
+              info: dict | None = None) -> tuple[float, float]:
     """Fit ``z = F·(1 − d/length)²`` (robust, 3-MAD trimming); returns (F, uncertainty).
 
     The uncertainty combines the fit's standard error with the per-pixel uncertainties
@@ -429,6 +432,9 @@ def _meniscus(d: np.ndarray, length: float, z: np.ndarray, uz: np.ndarray) -> tu
         keep = new
     if not np.isfinite(F):
         return NAN, NAN
+    if info is not None:
+        r = z[keep] - F * g[keep]
+        info["rel_rms"] = float(np.sqrt(np.mean(r ** 2)) / max(abs(F), 1e-3))
     gk = g[keep]
     uk = uz[keep]
     uf = float(np.sqrt(np.nansum(gk ** 2 * uk ** 2)) / np.sum(gk ** 2)) if np.isfinite(uk).any() else NAN
@@ -468,8 +474,13 @@ def _measure_chip(comp, joint, win: _Win, config: InspectConfig, level: float,
         length = float(pad_u.max()) - hl
         end = rel & (u >= hl + mg) & (u <= hl + length) & (np.abs(v_body) <= hw)
         if length > 2 * mg and end.sum() >= 8:
-            F, uF = _meniscus(u[end] - hl, length, win.h[end], win.u[end])
-            if np.isfinite(F):
+            info: dict = {}
+            F, uF = _meniscus(u[end] - hl, length, win.h[end], win.u[end], info)
+            if np.isfinite(F) and F > joint.max_height_mm and info.get("rel_rms", 0.0) > 0.1:
+                # Not a meniscus: a bulging (convex) fillet fits a concave model badly
+                # and the fit overshoots. Its observed percentile is its height.
+                m.max_method = "percentile (bulging fillet)"
+            elif np.isfinite(F):
                 m.max_mm, m.u_max_mm, m.max_method = F, _hypot(uF, u_level), "meniscus"
     return m
 
@@ -486,7 +497,7 @@ def _measure_gullwing(comp, joint, win: _Win, config: InspectConfig, level: floa
     g_t = float(lead.get("solder_thickness_mm", 0.0)) + float(lead["thickness_mm"])
     half_body = float(np.abs((comp.body_polygon_mm() - [comp.x_mm, comp.y_mm]) @ np.asarray(joint.outward)).max())
     mg = config.body_margin_mm
-    foot = (u >= heel + mg) & (u <= toe - p) & (np.abs(v) <= b2 - p)
+    foot = (u >= heel) & (u <= toe - p) & (np.abs(v) <= b2 - p)
     lead_grown = (u >= half_body - p) & (u <= toe + p) & (np.abs(v) <= b2 + p)
     # Beside the foot and beyond the toe only: the knee rises to the mould's exit height
     # and its blurred edge would read as solder.
@@ -521,8 +532,7 @@ def _measure_gullwing(comp, joint, win: _Win, config: InspectConfig, level: floa
     # focus window, so its percentile reads a fraction of the wetting height.
     side_f = m.side_mm / config.side_fillet_ratio if np.isfinite(m.side_mm) else NAN
     side_u = u_side / config.side_fillet_ratio if np.isfinite(u_side) else NAN
-    lead_ref = m.lead_mm if np.isfinite(m.lead_mm) else g_t
-    if np.isfinite(m.foot_mm) and m.foot_mm > lead_ref + 0.02 and not (side_f > m.foot_mm):
+    if np.isfinite(m.foot_mm) and m.foot_mm > g_t + 0.02:
         m.max_mm, m.u_max_mm, m.max_method = m.foot_mm, _hypot(u_foot, u_level), "foot"
     elif np.isfinite(side_f):
         m.max_mm, m.u_max_mm, m.max_method = side_f, _hypot(side_u, u_level), "side"

@@ -1,0 +1,70 @@
+"""Helpers of the inspection tests: measured surfaces made from synthetic board truth."""
+
+from __future__ import annotations
+
+import numpy as np
+
+from smdinspect.inspect import load_board
+from smdinspect.sff import Surface
+from smdinspect.synth._board_scene import board_scene, parse_defects
+
+DEMO = "references/demo_board.json"
+DENSE = "references/dense_board.json"
+STEP_MM = 0.05
+Z_MM = np.arange(-0.1, 1.8, STEP_MM)
+
+#: One joint (or component) of every defect class on the demo board, with ok joints left.
+ALL_DEFECTS = ("U1.2:bridge,U1.6:lifted_lead,U1.4:insufficient,U1.8:excess,C1.1:missing,"
+               "R2.2:excess,R2.1:insufficient,R3.1:tombstone,C2.1:component_missing,"
+               "R1.1:component_shifted")
+
+
+def truth_surface(board, defects: str, *, seed: int, pixel_size_mm: float = 0.02,
+                  offset_mm=None, rotate_deg=None, noise_mm: float = 0.003,
+                  hole_fraction: float = 0.05, dead_box=None):
+    """A Surface from a board scene's true heights, with noise and unreliable holes.
+
+    ``dead_box``: (joint_id, half_x_mm, half_y_mm) marks a box around a joint's pad
+    unreliable (a textureless region). Returns (surface, labels, board).
+    """
+    b = load_board(board) if isinstance(board, str) else board
+    scene, labels = board_scene(b, defects=parse_defects(defects, board=b),
+                                pixel_size_mm=pixel_size_mm, seed=seed, offset_mm=offset_mm,
+                                rotate_deg=rotate_deg)
+    rng = np.random.default_rng(seed)
+    h = scene.height_mm + rng.normal(0.0, noise_mm, scene.height_mm.shape).astype(np.float32)
+    reliable = rng.random(h.shape) >= hole_fraction
+    if dead_box is not None:
+        from smdinspect.inspect._geometry import apply2d, polygon_mask, world_to_pixel
+
+        jid, hx, hy = dead_box
+        c = np.array(b.joint(jid).center_mm)
+        box = c + np.array([[-hx, -hy], [hx, -hy], [hx, hy], [-hx, hy]])
+        T = np.array(labels["placement"]["board_to_world"])
+        reliable &= ~polygon_mask(world_to_pixel(apply2d(T, box), shape=h.shape,
+                                                 pixel_size_mm=pixel_size_mm), h.shape)
+    aif = np.round(np.clip(scene.albedo, 0, 1) * 255).astype(np.uint8)
+    surface = Surface(height_mm=h, confidence=reliable.astype(np.float32), reliable=reliable,
+                      f_peak=np.ones_like(h), sigma_mm=np.full(h.shape, 0.1, np.float32),
+                      reliability_db=np.full(h.shape, 30.0, np.float32), aif=aif,
+                      pixel_size_mm=pixel_size_mm, z_mm=Z_MM.copy())
+    return surface, labels, b
+
+
+def expected(labels) -> dict[str, set[str]]:
+    """Acceptable verdicts per joint: its class; a bridge's partner may be called bridge."""
+    out = {}
+    for j in labels["joints"]:
+        ok = {j["class"]}
+        if "bridged_by" in j:
+            ok.add("bridge")
+        out[j["id"]] = ok
+    return out
+
+
+def height_errors(result, labels, classes=("ok", "insufficient", "excess")) -> np.ndarray:
+    """Measured − true max solder height (mm) of the joints of ``classes``."""
+    lab = {j["id"]: j for j in labels["joints"]}
+    return np.array([j.measured_max_mm - lab[j.id]["true_height_mm"] for j in result.joints
+                     if lab[j.id]["class"] in classes and "bridged_by" not in lab[j.id]
+                     and j.verdict.value != "unreliable"])
