@@ -87,6 +87,8 @@ class BoardJob:
     #: ``"module:function"`` with the signature of
     #: :func:`smdinspect.pipeline.inspect_stack`, imported in the worker.
     inspect_fn: str = DEFAULT_INSPECT_FN
+    #: Threads OpenCV and Open3D may use in the worker (its share of the CPUs).
+    threads: int = 1
 
 
 @dataclass(frozen=True)
@@ -173,6 +175,7 @@ def run_board(job: BoardJob) -> BoardResult:
     tmp = Path(tempfile.mkdtemp(prefix=f"{PARTIAL_PREFIX}{out_dir.name}-", dir=out_dir.parent))
     os.chmod(tmp, 0o777 & ~_UMASK)
     try:
+        limit_native_threads(job.threads)
         result = _inspect_into(job, tmp, t0, digest)
         try:
             if result.status is BoardStatus.ERROR:
@@ -187,6 +190,29 @@ def run_board(job: BoardJob) -> BoardResult:
     finally:
         if tmp.exists():
             shutil.rmtree(tmp, ignore_errors=True)
+
+
+def limit_native_threads(threads: int) -> None:
+    """Let OpenCV and Open3D use at most ``threads`` threads in this process.
+
+    A worker's share of the CPUs: without it every worker starts one thread per CPU
+    (oversubscription). With one thread per worker the pipeline is also repeatable:
+    Open3D's multi-threaded RANSAC plane fit draws its samples in a scheduling-dependent
+    order even with a fixed seed (isl-org/Open3D#7270), so reports can differ in the
+    last digits between two runs otherwise.
+    """
+    try:
+        import cv2
+
+        cv2.setNumThreads(int(threads))
+    except ImportError:  # pragma: no cover - a dependency
+        pass
+    try:
+        import open3d
+
+        open3d.utility.set_max_threads(int(threads))
+    except (ImportError, AttributeError):  # pragma: no cover - older Open3D
+        pass
 
 
 def _inspect_into(job: BoardJob, tmp: Path, t0: float, digest: str) -> BoardResult:

@@ -240,8 +240,10 @@ def run_batch(
     board_sha256 = file_sha256(board)
     on_dask = scheduler is not None or dask_workers is not None
     pool_size = workers or (os.cpu_count() or 1)
+    # Each worker's share of the CPUs: Dask workers run one board per thread
+    # (LocalCluster: one thread per worker), the local pool splits the CPUs.
+    threads = 1 if on_dask else max(1, (os.cpu_count() or 1) // pool_size)
     if focus_config is None:
-        threads = 1 if on_dask else max(1, (os.cpu_count() or 1) // pool_size)
         focus_config = FocusConfig(workers=threads)
     if inspect_config is None:
         inspect_config = InspectConfig()
@@ -261,7 +263,7 @@ def run_batch(
                      board=board_obj, board_sha256=board_sha256, settings=settings,
                      focus_config=focus_config, inspect_config=inspect_config,
                      keep_unreliable=bool(keep_unreliable), force=bool(force),
-                     inspect_fn=inspect_fn)
+                     inspect_fn=inspect_fn, threads=threads)
             for name, path in stacks
         ]
         results: dict[str, BoardResult] = {}
@@ -283,7 +285,7 @@ def run_batch(
             executor = run_dask(jobs, on_result=on_result, scheduler=scheduler,
                                 local_workers=dask_workers)
         else:
-            run_local(jobs, workers=pool_size, on_result=on_result)
+            run_local(jobs, workers=pool_size, on_result=on_result, threads=threads)
             executor = f"process-pool({pool_size} workers)"
 
         clean_leftovers(out_dir)  # folders of crashed workers

@@ -10,6 +10,7 @@ from __future__ import annotations
 import collections
 import logging
 import multiprocessing
+import os
 import sys
 import uuid
 from concurrent.futures import FIRST_COMPLETED, Future, ProcessPoolExecutor, wait
@@ -38,9 +39,16 @@ def _crashed(job: BoardJob, reason: str) -> BoardResult:
     return result
 
 
-def _init_worker() -> None:
-    """Pool-process initializer: die with the batch (Linux), so that a killed batch
-    leaves no orphan still writing reports."""
+def _init_worker(threads: int) -> None:
+    """Pool-process initializer.
+
+    * Die with the batch (Linux ``PR_SET_PDEATHSIG``), so that a killed batch leaves no
+      orphan still writing reports.
+    * Size the OpenMP / BLAS thread pools of libraries loaded later to this worker's
+      share of the CPUs, as Dask's nanny does for its workers (variables the user set
+      are respected); OpenCV and Open3D are sized per board by
+      :func:`~smdinspect._batch._job.limit_native_threads`.
+    """
     if sys.platform.startswith("linux"):
         try:
             import ctypes
@@ -51,12 +59,16 @@ def _init_worker() -> None:
             libc.prctl(pr_set_pdeathsig, int(signal.SIGKILL), 0, 0, 0)
         except (OSError, AttributeError):  # pragma: no cover - exotic libc
             pass
+    for var in ("OMP_NUM_THREADS", "OPENBLAS_NUM_THREADS", "MKL_NUM_THREADS"):
+        os.environ.setdefault(var, str(threads))
 
 
-def run_local(jobs: Sequence[BoardJob], *, workers: int, on_result: OnResult) -> None:
+def run_local(jobs: Sequence[BoardJob], *, workers: int, on_result: OnResult,
+              threads: int = 1) -> None:
     """Run ``jobs`` in a ``concurrent.futures.ProcessPoolExecutor`` of ``workers``.
 
-    Processes are started with ``spawn`` (no fork of a threaded parent). At most
+    Processes are started with ``spawn`` (no fork of a threaded parent); each sizes its
+    native thread pools to ``threads`` (see :func:`_init_worker`). At most
     ``workers`` boards are in flight, so a crashed worker process (a segfault in a
     decoder, the OOM killer) can only take those boards down: the pool is rebuilt and
     each of them is retried alone; a board whose lone run crashes again is recorded as
@@ -65,7 +77,11 @@ def run_local(jobs: Sequence[BoardJob], *, workers: int, on_result: OnResult) ->
     ctx = multiprocessing.get_context("spawn")
     pending = collections.deque(jobs)
     suspects: collections.deque[BoardJob] = collections.deque()
-    pool = ProcessPoolExecutor(max_workers=workers, mp_context=ctx, initializer=_init_worker)
+    def new_pool() -> ProcessPoolExecutor:
+        return ProcessPoolExecutor(max_workers=workers, mp_context=ctx,
+                                   initializer=_init_worker, initargs=(threads,))
+
+    pool = new_pool()
     inflight: dict[Future, tuple[BoardJob, bool]] = {}
     try:
         while pending or suspects or inflight:
@@ -110,8 +126,7 @@ def run_local(jobs: Sequence[BoardJob], *, workers: int, on_result: OnResult) ->
                     on_result(result)
                 inflight.clear()
                 pool.shutdown(wait=True, cancel_futures=True)
-                pool = ProcessPoolExecutor(max_workers=workers, mp_context=ctx,
-                                           initializer=_init_worker)
+                pool = new_pool()
     finally:
         pool.shutdown(wait=True, cancel_futures=True)
 
