@@ -68,3 +68,35 @@ def height_errors(result, labels, classes=("ok", "insufficient", "excess")) -> n
     return np.array([j.measured_max_mm - lab[j.id]["true_height_mm"] for j in result.joints
                      if lab[j.id]["class"] in classes and "bridged_by" not in lab[j.id]
                      and j.verdict.value != "unreliable"])
+
+
+def render_board_stack(root, defects: str, *, seed: int, textureless_joint: str | None = None,
+                       pixel_size_mm: float = 0.02):
+    """Render the demo board with ``defects`` into a focal stack at ``root``.
+
+    ``textureless_joint``: the albedo around that joint's pad (pad + 0.25 mm) is made
+    uniform and matt, so shape from focus cannot measure it. Returns (stack, labels).
+    """
+    from smdinspect.inspect._geometry import apply2d, polygon_mask, world_to_pixel
+    from smdinspect.optics import Optics
+    from smdinspect.synth import Scene, render_stack
+
+    b = load_board(DEMO)
+    scene, labels = board_scene(b, defects=parse_defects(defects, board=b),
+                                pixel_size_mm=pixel_size_mm, seed=seed)
+    if textureless_joint is not None:
+        poly = b.joint(textureless_joint).polygon_mm
+        lo, hi = poly.min(axis=0) - 0.25, poly.max(axis=0) + 0.25
+        box = np.array([[lo[0], lo[1]], [hi[0], lo[1]], [hi[0], hi[1]], [lo[0], hi[1]]])
+        T = np.array(labels["placement"]["board_to_world"])
+        shape = scene.height_mm.shape
+        m = polygon_mask(world_to_pixel(apply2d(T, box), shape=shape,
+                                        pixel_size_mm=pixel_size_mm), shape)
+        albedo = np.array(scene.albedo)
+        albedo[m] = albedo[m].reshape(-1, 3).mean(axis=0)
+        specular = np.array(scene.specular)
+        specular[m] = 0.0
+        scene = Scene(scene.height_mm, albedo, pixel_size_mm, specular, scene.name, dict(scene.meta))
+    stack = render_stack(scene, Z_MM, optics=Optics(pixel_pitch_mm=pixel_size_mm), seed=seed,
+                         out=root, previews=False)
+    return stack, labels

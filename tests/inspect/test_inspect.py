@@ -1,0 +1,92 @@
+"""Joint measurement and verdicts on surfaces made from the board simulator's truth.
+
+The heights are the scene's true heights with 3 µm noise and 5 % unreliable pixels, the
+board shifted by up to ±2 mm and rotated by up to ±5°. (Through rendered focal stacks:
+see test_pipeline.py.)
+"""
+
+import numpy as np
+import pytest
+
+from smdinspect.errors import BoardNotLocatedError, InputError
+from smdinspect.inspect import InspectConfig, Verdict, load_board
+from smdinspect.inspect._inspect import inspect_surface
+
+from ._synthetic import ALL_DEFECTS, DEMO, DENSE, STEP_MM, expected, height_errors, truth_surface
+
+# On an ideal height map the 97th percentile of a concave side strip reads ~0.8 of the
+# wetting height (the default 0.5 is the calibration for shape from focus).
+IDEAL = InspectConfig(side_fillet_ratio=0.8)
+PLACEMENTS = [((1.8, -1.5), 4.6), ((-2.0, 1.2), -5.0)]
+
+
+@pytest.fixture(scope="module", params=range(len(PLACEMENTS)), ids=["shift+rot+", "shift-rot-"])
+def inspected(request):
+    offset, angle = PLACEMENTS[request.param]
+    surface, labels, board = truth_surface(DEMO, ALL_DEFECTS, seed=10 + request.param,
+                                           offset_mm=offset, rotate_deg=angle)
+    return inspect_surface(surface, board, IDEAL), labels
+
+
+def test_every_defect_class_is_found_and_no_ok_joint_fails(inspected):
+    result, labels = inspected
+    want = expected(labels)
+    got = {j.id: j.verdict.value for j in result.joints}
+    wrong = {k: (sorted(want[k]), got[k]) for k in want if got[k] not in want[k]}
+    assert not wrong
+    classes = {j["class"] for j in labels["joints"]}
+    assert classes == {"ok", "missing", "insufficient", "excess", "bridge", "lifted_lead",
+                       "tombstone", "component_missing", "component_shifted"}
+    assert result.exit_code == 1 and not result.passed
+
+
+def test_joint_heights_match_the_truth(inspected):
+    result, labels = inspected
+    err = height_errors(result, labels)
+    assert len(err) >= 7
+    assert np.median(np.abs(err)) <= 0.25 * STEP_MM            # 12.5 µm
+    ok = [j for j in result.joints if j.verdict is Verdict.OK]
+    assert all(j.expected_min_mm <= j.measured_max_mm <= j.expected_max_mm for j in ok)
+    assert all(np.isfinite(j.uncertainty_mm) and 0 < j.uncertainty_mm < 0.05 for j in ok)
+    assert all(j.volume_mm3 > 0 and j.area_mm2 > 0 for j in ok)
+
+
+def test_registration_is_reported(inspected):
+    result, labels = inspected
+    reg = result.registration
+    assert reg.converged and reg.method.startswith("coarse+features")
+    assert reg.rotation_deg == pytest.approx(labels["placement"]["rotate_deg"], abs=0.02)
+    assert result.plane.tilt_deg < 0.05
+
+
+def test_a_textureless_region_makes_its_joints_unreliable():
+    board = load_board(DEMO)
+    # Dead pixels over R2.2's pad and well around it (the fillet and the pad beyond it).
+    surface, labels, _ = truth_surface(board, "R1.1:missing", seed=5, dead_box=("R2.2", 0.9, 0.7))
+    result = inspect_surface(surface, board, IDEAL)
+    j = result.joint("R2.2")
+    assert j.verdict is Verdict.UNRELIABLE and j.reliable_fraction < 0.4
+    assert "not judged" in j.reason
+    assert result.joint("R1.1").verdict is Verdict.MISSING
+    others = [k for k in result.joints if k.id not in ("R2.2", "R1.1")]
+    assert all(k.verdict is Verdict.OK for k in others)
+    # Unreliable joints are reported but do not fail the board by themselves.
+    clean, _, _ = truth_surface(board, "", seed=5, dead_box=("R2.2", 0.9, 0.7))
+    r2 = inspect_surface(clean, board, IDEAL)
+    assert [j.id for j in r2.unreliable] == ["R2.2"] and r2.exit_code == 0
+
+
+def test_the_wrong_board_file_raises_not_located():
+    surface, _, _ = truth_surface(DEMO, "", seed=6)
+    with pytest.raises(BoardNotLocatedError, match="not located") as info:
+        inspect_surface(surface, load_board(DENSE))
+    assert info.value.exit_code == 3
+    assert not info.value.registration.converged
+
+
+def test_surface_without_pixel_size_is_bad_input():
+    surface, _, board = truth_surface(DEMO, "", seed=6)
+    from dataclasses import replace
+
+    with pytest.raises(InputError, match="no pixel size"):
+        inspect_surface(replace(surface, pixel_size_mm=None), board)
