@@ -12,25 +12,37 @@ adds the reconstruction and the files.
 """
 
 from ._board import Board, Component, Fiducial, Joint, load_board
-from ._config import InspectConfig, Verdict
+from ._config import FilletModel, InspectConfig, Verdict
+from ._inspect import inspect_surface
 from ._plane import BoardPlane, fit_board_plane
-from ._reference import reference_mesh, reference_points, reference_prisms, render_reference
+from ._reference import (
+    body_top_mm,
+    reference_mesh,
+    reference_points,
+    reference_prisms,
+    render_reference,
+)
 from ._register import RegistrationResult, masked_ncc, register_board
+from ._report import REPORT_FILES, report_dict, write_reports
 from ._result import ComponentResult, InspectionResult, JointResult
 
 __all__ = [
+    "REPORT_FILES",
     "Board",
     "BoardPlane",
     "Component",
     "ComponentResult",
     "Fiducial",
+    "FilletModel",
     "InspectConfig",
     "InspectionResult",
     "Joint",
     "JointResult",
     "RegistrationResult",
     "Verdict",
+    "body_top_mm",
     "fit_board_plane",
+    "inspect_surface",
     "load_board",
     "masked_ncc",
     "reference_mesh",
@@ -38,4 +50,6 @@ __all__ = [
     "reference_prisms",
     "register_board",
     "render_reference",
+    "report_dict",
+    "write_reports",
 ]

@@ -169,7 +169,7 @@ class InspectConfig:
     fillet_model: FilletModel = FilletModel.MENISCUS
     cap_excess_mm: float = 0.05
     side_fillet_ratio: float = 0.5
-    standing_fraction: float = 0.15
+    standing_fraction: float = 0.05
     solder_min_height_mm: float = 0.02
     body_margin_mm: float = 0.08
     bridge_height_mm: float = 0.05
