@@ -195,8 +195,8 @@ class InspectionResult:
         lines = [
             f"board {self.board}: {len(self.joints)} joints, {len(self.defects)} defective, "
             f"{c['unreliable']} unreliable -> {'PASS' if self.passed else 'FAIL'}",
-            f"registration: {reg.method}, rotation {reg.rotation_deg:+.2f} deg, offset "
-            f"({reg.translation_mm[0]:+.3f}, {reg.translation_mm[1]:+.3f}) mm, score "
+            f"registration: {reg.method}, rotation {reg.rotation_deg:+.2f} deg, board centre "
+            f"offset ({reg.offset_mm[0]:+.3f}, {reg.offset_mm[1]:+.3f}) mm, score "
             f"{reg.score:.2f}, fitness {reg.fitness:.2f}, rmse {reg.rmse_mm * 1000:.1f} um",
         ]
         for j in self.joints:
