@@ -23,8 +23,8 @@ and the sharp edge of the higher part (a component body) wins over the weak text
 the lower one (solder mask), so a band of lower pixels takes the higher height. No focus
 curve shows this, so :func:`depth_edge_mask` looks for it in the result: pixels within
 half a window of a place where the reliable heights in a 5 × 5 square differ by more
-than ``edge_jump_steps`` frame steps (default 3), and on its high side (in the upper
-half of the local height range), are made unreliable. The low side keeps its depths: a
+than ``edge_jump_steps`` frame steps (default 3), and above that step's middle level,
+are made unreliable. The low side keeps its depths: a
 fillet at the foot of a termination is measured, the termination's rim is not. A
 fillet at 45° rises about one step over five pixels, far from a step.
 
@@ -82,14 +82,14 @@ def confidence_map(fit: PeakFit) -> np.ndarray:
 
 def depth_edge_mask(height_mm: np.ndarray, reliable: np.ndarray, *, jump_mm: float,
                     radius_px: int, span_px: int = 5) -> np.ndarray:
-    """(H, W) bool: pixels on the high side of a height step, within ``radius_px`` of it.
+    """(H, W) bool: pixels within ``radius_px`` of a height step, on its high side.
 
     A step is where the reliable heights inside a ``span_px`` square differ by more than
     ``jump_mm`` (a measured step is smeared over a few pixels, so neighbours alone miss
-    it). Bleeding makes low pixels next to a step take the *high* side's height, so only
-    pixels in the upper half of the local height range (within ``radius_px``) are
-    flagged; the correctly measured low side (a fillet at the foot of a termination)
-    stays.
+    it); its level is the middle of that range. Bleeding makes low pixels next to a step
+    take the *high* side's height, so only pixels above the level of a step within
+    ``radius_px`` (the highest such level) are flagged: the correctly measured low side,
+    a fillet at the foot of a termination, stays.
     """
     import cv2
 
@@ -98,10 +98,13 @@ def depth_edge_mask(height_mm: np.ndarray, reliable: np.ndarray, *, jump_mm: flo
     down = np.where(reliable, h, np.inf).astype(np.float32)
     square = np.ones((span_px, span_px), np.uint8)
     with np.errstate(invalid="ignore", over="ignore"):
-        step = reliable & ((cv2.dilate(up, square) - cv2.erode(down, square)) > jump_mm)
-        if radius_px <= 0 or not step.any():
+        hi, lo = cv2.dilate(up, square), cv2.erode(down, square)
+        step = reliable & ((hi - lo) > jump_mm)
+        if not step.any():
             return step
-        disk = cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (2 * radius_px + 1, 2 * radius_px + 1))
-        near = cv2.dilate(step.view(np.uint8), disk).astype(bool)
-        middle = 0.5 * (cv2.dilate(up, disk) + cv2.erode(down, disk))
-        return near & (h > middle)
+        level = np.where(step, 0.5 * (hi + lo), -np.inf).astype(np.float32)
+        if radius_px > 0:
+            disk = cv2.getStructuringElement(cv2.MORPH_ELLIPSE,
+                                             (2 * radius_px + 1, 2 * radius_px + 1))
+            level = cv2.dilate(level, disk)
+        return np.isfinite(level) & (h > level)
