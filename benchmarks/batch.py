@@ -93,9 +93,16 @@ def main() -> None:
             print(f"{label:<30} {len(res.boards)} boards in {res.seconds:6.1f} s  ->  "
                   f"{res.boards_per_minute:5.2f} boards/min  (mean {per_board:.1f} s per board "
                   f"in its worker; ok {c['ok']}, defects {c['defects']}, errors {c['error']})")
+            for reason in sorted({b.reason for b in res.boards if b.status.value == "error"}):
+                print(f"{'':<30} error: {reason[:150]}")
             verdicts[label] = [(b.stack, b.status.value, b.defects, b.reason) for b in res.boards]
         same = len({json.dumps(v) for v in verdicts.values()}) == 1
         print(f"same verdicts on all three executors: {same}")
+        if not same:
+            for i, rows_i in enumerate(zip(*verdicts.values())):
+                if len({json.dumps(r) for r in rows_i}) > 1:
+                    print(f"  differs: {rows_i[0][0]}: "
+                          + " | ".join(f"{r[1]} {r[2]}" for r in rows_i))
         print(json.dumps(rows))
 
 

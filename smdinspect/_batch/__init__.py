@@ -13,7 +13,7 @@ from ._job import (
 )
 from ._report import SUMMARY_COLUMNS, merge_junit, write_summary_csv, write_summary_json
 from ._run import BatchResult, batch_exit_code, run_batch
-from ._runners import run_dask, run_local
+from ._runners import dask_client, run_dask, run_local
 
 __all__ = [
     "DONE_MARKER",
@@ -25,6 +25,7 @@ __all__ = [
     "BoardStatus",
     "batch_exit_code",
     "clean_leftovers",
+    "dask_client",
     "discover_stacks",
     "file_sha256",
     "merge_junit",

@@ -15,7 +15,7 @@ from ..errors import InputError
 from ._discover import discover_stacks, file_sha256
 from ._job import DEFAULT_INSPECT_FN, BoardJob, BoardResult, BoardStatus, clean_leftovers
 from ._report import merge_junit, write_summary_csv, write_summary_json
-from ._runners import run_dask, run_local
+from ._runners import dask_client, run_dask, run_local
 
 __all__ = ["BatchResult", "run_batch"]
 
@@ -253,8 +253,15 @@ def run_batch(
     settings = {"smdinspect": __version__, "pipeline": inspect_fn, "focus": focus_key,
                 "inspect": inspect_config.to_dict(), "keep_unreliable": bool(keep_unreliable)}
 
-    out_dir.mkdir(parents=True, exist_ok=True)
-    with _locked(out_dir):
+    with contextlib.ExitStack() as stack:
+        client = None
+        if on_dask:  # connect first: an unreachable scheduler leaves nothing behind
+            client, executor = stack.enter_context(
+                dask_client(scheduler=scheduler, local_workers=dask_workers))
+        else:
+            executor = f"process-pool({pool_size} workers)"
+        out_dir.mkdir(parents=True, exist_ok=True)
+        stack.enter_context(_locked(out_dir))
         removed = clean_leftovers(out_dir)
         if removed:
             log.info("removed %d temporary folder(s) left by an interrupted batch", len(removed))
@@ -271,22 +278,18 @@ def run_batch(
 
         def on_result(res: BoardResult) -> None:
             results[res.stack] = res
-            if res.status is BoardStatus.ERROR:
-                log.warning("%s: error (exit %d): %s", res.stack, res.exit_code, res.reason)
-            else:
-                log.debug("%s: %s%s in %.1f s", res.stack, res.status.value,
-                          " (skipped, unchanged)" if res.skipped else "", res.seconds)
+            log.debug("%s: %s (exit %d)%s in %.1f s %s", res.stack, res.status.value,
+                      res.exit_code, " skipped, unchanged," if res.skipped else "",
+                      res.seconds, res.reason)
             if progress is not None:
                 progress(len(results), total)
 
         if progress is not None:
             progress(0, total)
-        if on_dask:
-            executor = run_dask(jobs, on_result=on_result, scheduler=scheduler,
-                                local_workers=dask_workers)
+        if client is not None:
+            run_dask(jobs, client=client, on_result=on_result)
         else:
             run_local(jobs, workers=pool_size, on_result=on_result, threads=threads)
-            executor = f"process-pool({pool_size} workers)"
 
         clean_leftovers(out_dir)  # folders of crashed workers
         boards = tuple(results[j.name] if j.name in results else _lost(j) for j in jobs)
@@ -294,7 +297,6 @@ def run_batch(
         result = BatchResult(boards=boards, out_dir=out_dir, executor=executor,
                              seconds=seconds, summary_csv=out_dir / SUMMARY_CSV,
                              summary_json=out_dir / SUMMARY_JSON, junit=out_dir / JUNIT_XML)
-        counts = result.counts()
         header = {
             "format": "smdinspect-batch-summary",
             "version": 1,
@@ -307,7 +309,7 @@ def run_batch(
             "settings": settings,
             "exit_code": result.exit_code,
             "boards_total": total,
-            "counts": counts,
+            "counts": result.counts(),
             "seconds": round(seconds, 3),
             "boards_per_minute": (None if math.isnan(result.boards_per_minute)
                                   else round(result.boards_per_minute, 3)),
@@ -322,4 +324,3 @@ def _lost(job: BoardJob) -> BoardResult:  # pragma: no cover - executors report 
     return BoardResult(stack=job.name, status=BoardStatus.ERROR, exit_code=2, joints=None,
                        defects=None, unreliable=None, reason="no result came back",
                        seconds=0.0, skipped=False, out_dir=job.out_dir)
-

@@ -8,6 +8,7 @@ distribution logic of our own beyond handing jobs to the executor.
 from __future__ import annotations
 
 import collections
+import contextlib
 import logging
 import multiprocessing
 import os
@@ -15,12 +16,12 @@ import sys
 import uuid
 from concurrent.futures import FIRST_COMPLETED, Future, ProcessPoolExecutor, wait
 from concurrent.futures.process import BrokenProcessPool
-from typing import Callable, Sequence
+from typing import Any, Callable, Iterator, Sequence
 
 from ..errors import InputError
 from ._job import BoardJob, BoardResult, BoardStatus, record_error, run_board
 
-__all__ = ["run_dask", "run_local"]
+__all__ = ["dask_client", "run_dask", "run_local"]
 
 log = logging.getLogger(__name__)
 
@@ -138,31 +139,35 @@ def _worker_version() -> str:
     return smdinspect.__version__
 
 
-def run_dask(jobs: Sequence[BoardJob], *, on_result: OnResult, scheduler: str | None = None,
-             local_workers: int | None = None, connect_timeout_s: float = 30.0) -> str:
-    """Run ``jobs`` on a Dask distributed cluster with ``client.submit`` / ``as_completed``.
+@contextlib.contextmanager
+def dask_client(*, scheduler: str | None = None, local_workers: int | None = None,
+                connect_timeout_s: float = 30.0) -> Iterator[tuple[Any, str]]:
+    """Connect to (or start) a Dask distributed cluster and check its workers.
 
     Parameters
     ----------
-    jobs : sequence of BoardJob
-    on_result : callable
-        Called with every :class:`BoardResult` as boards finish.
     scheduler : str, optional
         Address of an existing scheduler (``tcp://HOST:8786``). Its workers must import
-        the same smdinspect version (checked first) and see the same file system.
+        the same smdinspect version (checked here) and see the same file system.
     local_workers : int, optional
         Instead: start a ``LocalCluster`` of this many single-threaded worker processes
-        on 127.0.0.1 (dashboard off) for the duration of the run.
+        on 127.0.0.1 (dashboard off), closed on exit.
     connect_timeout_s : float
         How long to wait for the scheduler and for a first worker.
 
-    Returns
-    -------
-    str
-        A description of the executor (for the summary).
+    Yields
+    ------
+    (client, description)
+        A ``distributed.Client`` and a description of the executor for the summary.
+
+    Raises
+    ------
+    InputError
+        The scheduler cannot be reached, no worker joins, or a worker cannot import
+        smdinspect or runs another version.
     """
     try:
-        from distributed import Client, LocalCluster, as_completed
+        from distributed import Client, LocalCluster
     except ImportError as exc:  # pragma: no cover - dask[distributed] is a dependency
         raise InputError(f"Dask is not installed ({exc}); pip install 'dask[distributed]'") from None
     from .. import __version__
@@ -196,12 +201,29 @@ def run_dask(jobs: Sequence[BoardJob], *, on_result: OnResult, scheduler: str | 
             w, v = next(iter(wrong.items()))
             raise InputError(f"Dask worker {w} runs smdinspect {v}, this client {__version__}; "
                              "install the same version on every worker")
-        token = uuid.uuid4().hex[:8]
-        futures = {}
-        for job in jobs:
-            fut = client.submit(run_board, job, key=f"smdinspect-board-{job.name}-{token}",
-                                pure=False)
-            futures[fut] = job
+        yield client, where
+    finally:
+        client.close()
+        if cluster is not None:
+            cluster.close()
+
+
+def run_dask(jobs: Sequence[BoardJob], *, client: Any, on_result: OnResult) -> None:
+    """Run ``jobs`` on a Dask cluster: one ``client.submit`` task per board, results
+    handed to ``on_result`` as they complete (``distributed.as_completed``).
+
+    A task that fails outside :func:`run_board` (a worker lost more often than Dask's
+    ``allowed-failures``, a result that cannot be unpickled) becomes an ``error`` row.
+    """
+    from distributed import as_completed
+
+    token = uuid.uuid4().hex[:8]
+    futures = {}
+    for job in jobs:
+        fut = client.submit(run_board, job, key=f"smdinspect-board-{job.name}-{token}",
+                            pure=False)
+        futures[fut] = job
+    try:
         for fut in as_completed(list(futures)):
             job = futures[fut]
             try:
@@ -211,7 +233,4 @@ def run_dask(jobs: Sequence[BoardJob], *, on_result: OnResult, scheduler: str | 
             on_result(result)
             fut.release()
     finally:
-        client.close()
-        if cluster is not None:
-            cluster.close()
-    return where
+        client.cancel([f for f in futures if not f.done()])

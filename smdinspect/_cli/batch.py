@@ -8,6 +8,9 @@ from pathlib import Path
 
 log = logging.getLogger(__name__)
 
+#: Boards listed by name at the end of a run (errors first); the rest are in the summary.
+_MAX_LISTED = 20
+
 _EPILOG = """\
 exit codes: 0 every board passed; 1 some board has defects; 2 some board could not be
 inspected (bad or corrupt stack, board not located, crash) or bad arguments. An error
@@ -95,8 +98,12 @@ def run(args: argparse.Namespace) -> int:
     print(f"{len(res.boards)} boards in {res.seconds:.1f} s on {res.executor}: {c['ok']} ok, "
           f"{c['defects']} with defects, {c['error']} errors"
           + (f" ({c['skipped']} unchanged, skipped)" if c["skipped"] else ""))
-    for b in res.boards:
-        if b.status.value != "ok":
-            print(f"  {b.stack}: {b.status.value} (exit {b.exit_code}) {b.reason}")
+    # errors first, then boards with defects; the summary has them all
+    bad = sorted((b for b in res.boards if b.status.value != "ok"),
+                 key=lambda b: (b.status.value != "error", b.stack))
+    for b in bad[:_MAX_LISTED]:
+        print(f"  {b.stack}: {b.status.value} (exit {b.exit_code}) {b.reason}")
+    if len(bad) > _MAX_LISTED:
+        print(f"  ... and {len(bad) - _MAX_LISTED} more (see summary.csv)")
     print(f"summary: {res.summary_csv}  junit: {res.junit}")
     return res.exit_code
