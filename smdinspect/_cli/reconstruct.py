@@ -23,7 +23,7 @@ def add_stack_arguments(p: argparse.ArgumentParser) -> None:
                    help="object-side pixel size (mm); overrides stack.json")
     p.add_argument("--operator", default="sml", choices=OPERATORS, metavar="OP",
                    help="focus measure (default sml; one of: %(choices)s)")
-    p.add_argument("--window-px", type=int, default=9, help="focus window side, odd (default 9)")
+    p.add_argument("--window-px", type=int, default=9, help="focus window side, odd (default %(default)s)")
     p.add_argument("--fit", default="gauss3", choices=["gauss3", "lsq", "argmax"],
                    help="peak model (default gauss3: Nayar's 3-point Gaussian)")
     p.add_argument("--fit-half-width", type=int, default=3,

@@ -218,7 +218,8 @@ def write_reconstruction(
     """Write every output of a reconstruction into ``out_dir``.
 
     Files: ``height_mm.tiff`` (float32, every pixel), ``confidence.tiff`` (float32,
-    [0, 1]), ``aif.png``, ``height.png``, ``view3d.png``, ``cloud.ply``, ``mesh.ply``,
+    [0, 1]), ``sigma_mm.tiff`` (float32, fitted focus-peak width σ_F, NaN where the fit
+    failed), ``aif.png``, ``height.png``, ``view3d.png``, ``cloud.ply``, ``mesh.ply``,
     ``mesh.stl`` and ``summary.json``.
 
     Returns
@@ -232,6 +233,7 @@ def write_reconstruction(
     paths: dict[str, Path] = {}
     paths["height_mm.tiff"] = _atomic.write_tiff(out / "height_mm.tiff", surface.height_mm.astype(np.float32))
     paths["confidence.tiff"] = _atomic.write_tiff(out / "confidence.tiff", surface.confidence.astype(np.float32))
+    paths["sigma_mm.tiff"] = _atomic.write_tiff(out / "sigma_mm.tiff", surface.sigma_mm.astype(np.float32))
     paths["aif.png"] = _atomic.write_image(out / "aif.png", _png_ready(surface.aif))
     if previews:
         paths["height.png"] = render_height_png(surface, out / "height.png")

@@ -31,7 +31,7 @@ def test_outputs(cone_stack, tmp_path, capsys):
     assert main(["-q", "reconstruct", str(root), "--out", str(out)]) == 0
     assert "coverage" in capsys.readouterr().out
     names = {p.name for p in out.iterdir()}
-    assert names == {"height_mm.tiff", "confidence.tiff", "aif.png", "height.png", "view3d.png",
+    assert names == {"height_mm.tiff", "confidence.tiff", "sigma_mm.tiff", "aif.png", "height.png", "view3d.png",
                      "cloud.ply", "mesh.ply", "mesh.stl", "summary.json"}
     height = tifffile.imread(out / "height_mm.tiff")
     conf = tifffile.imread(out / "confidence.tiff")
