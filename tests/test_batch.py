@@ -161,6 +161,21 @@ def test_pool_batch_reports_every_board(pool_run, stacks):
         assert len(failed) == b.defects
 
 
+def test_batch_report_is_the_pipeline_report(pool_run, stacks, tmp_path):
+    """A board's batch report equals a direct ``inspect_stack`` call (one thread)."""
+    from smdinspect._batch._job import limit_native_threads
+    from smdinspect.pipeline import inspect_stack
+    from smdinspect.stack import FocalStack
+
+    name = "lineB/board3"
+    limit_native_threads(1)
+    res = inspect_stack(FocalStack.open(stacks / name), BOARD, tmp_path)
+    b = pool_run.board(name)
+    assert (b.exit_code, b.defects, b.unreliable) == (res.exit_code, len(res.defects),
+                                                     len(res.unreliable))
+    assert _report(tmp_path / "report.json") == _report(Path(b.out_dir) / "report.json")
+
+
 # -- Dask ----------------------------------------------------------------------------
 
 

@@ -89,6 +89,8 @@ class BoardJob:
     inspect_fn: str = DEFAULT_INSPECT_FN
     #: Threads OpenCV and Open3D may use in the worker (its share of the CPUs).
     threads: int = 1
+    #: ``False``: no report.html (passed on as ``html=False``).
+    html: bool = True
 
 
 @dataclass(frozen=True)
@@ -222,9 +224,10 @@ def _inspect_into(job: BoardJob, tmp: Path, t0: float, digest: str) -> BoardResu
 
         inspect_stack = _resolve(job.inspect_fn)
         stack = FocalStack.open(job.stack_dir)
+        extra = {} if job.html else {"html": False}
         res = inspect_stack(stack, job.board, tmp, focus_config=job.focus_config,
                             inspect_config=job.inspect_config,
-                            keep_unreliable=job.keep_unreliable)
+                            keep_unreliable=job.keep_unreliable, **extra)
     except SmdInspectError as exc:
         return _error(job, t0, exc.exit_code, str(exc), digest=digest)
     except MemoryError:

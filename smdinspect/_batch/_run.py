@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import contextlib
+import dataclasses
 import logging
 import math
 import os
@@ -135,6 +136,7 @@ def run_batch(
     focus_config: Any = None,
     inspect_config: Any = None,
     keep_unreliable: bool = False,
+    html: bool = True,
     progress: Callable[[int, int], None] | None = None,
     inspect_fn: str = DEFAULT_INSPECT_FN,
 ) -> BatchResult:
@@ -177,12 +179,16 @@ def run_batch(
     force : bool
         Redo every board, even those whose reports are up to date.
     focus_config : smdinspect.sff.FocusConfig, optional
-        Defaults to ``FocusConfig()`` with ``workers`` (focus threads per board) set to
-        ``max(1, cpu_count // pool size)`` for the local pool and 1 on Dask.
+        Defaults to the inspection's own default
+        (:func:`smdinspect.pipeline.inspection_focus_config`) with ``workers`` (focus
+        threads per board) set to ``max(1, cpu_count // pool size)`` for the local pool
+        and 1 on Dask.
     inspect_config : smdinspect.inspect.InspectConfig, optional
         Defaults to ``InspectConfig()``.
     keep_unreliable : bool
         Passed to the pipeline (unreliable points kept in cloud and mesh).
+    html : bool
+        Write each board's ``report.html`` (``False`` is passed on as ``html=False``).
     progress : callable(done, total), optional
         Called with the number of boards finished (skipped ones included).
     inspect_fn : str
@@ -203,7 +209,7 @@ def run_batch(
     """
     from .. import __version__
     from ..inspect import InspectConfig, load_board
-    from ..sff import FocusConfig
+    from ..pipeline import inspection_focus_config
 
     t0 = time.perf_counter()
     if scheduler is not None and dask_workers is not None:
@@ -244,14 +250,15 @@ def run_batch(
     # (LocalCluster: one thread per worker), the local pool splits the CPUs.
     threads = 1 if on_dask else max(1, (os.cpu_count() or 1) // pool_size)
     if focus_config is None:
-        focus_config = FocusConfig(workers=threads)
+        focus_config = dataclasses.replace(inspection_focus_config(), workers=threads)
     if inspect_config is None:
         inspect_config = InspectConfig()
     focus_key = {k: v for k, v in focus_config.to_dict().items() if k not in _NEUTRAL_FOCUS_KEYS}
     if not isinstance(inspect_fn, str) or ":" not in inspect_fn:
         raise InputError(f"inspect_fn must be 'module:function'; got {inspect_fn!r}")
     settings = {"smdinspect": __version__, "pipeline": inspect_fn, "focus": focus_key,
-                "inspect": inspect_config.to_dict(), "keep_unreliable": bool(keep_unreliable)}
+                "inspect": inspect_config.to_dict(), "keep_unreliable": bool(keep_unreliable),
+                "html": bool(html)}
 
     with contextlib.ExitStack() as stack:
         client = None
@@ -270,7 +277,7 @@ def run_batch(
                      board=board_obj, board_sha256=board_sha256, settings=settings,
                      focus_config=focus_config, inspect_config=inspect_config,
                      keep_unreliable=bool(keep_unreliable), force=bool(force),
-                     inspect_fn=inspect_fn, threads=threads)
+                     inspect_fn=inspect_fn, threads=threads, html=bool(html))
             for name, path in stacks
         ]
         results: dict[str, BoardResult] = {}

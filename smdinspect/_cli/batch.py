@@ -48,50 +48,61 @@ def register(sub: argparse._SubParsersAction) -> None:
                        help="start a local Dask cluster of N worker processes for this run")
     p.add_argument("--force", action="store_true",
                    help="redo every board, even those whose reports are up to date")
-    f = p.add_argument_group("focus options (as for smdinspect reconstruct)")
-    f.add_argument("--operator", default="sml", choices=OPERATORS, metavar="OP",
+    f = p.add_argument_group("inspection options (as for smdinspect inspect)")
+    f.add_argument("--operator", default=None, choices=OPERATORS, metavar="OP",
                    help="focus measure (default sml)")
-    f.add_argument("--window-px", type=int, default=9, help="focus window side, odd (default 9)")
-    f.add_argument("--fit", default="gauss3", choices=["gauss3", "lsq", "argmax"],
+    f.add_argument("--window-px", type=int, default=None,
+                   help="focus window side, odd (default: the inspection's, 5)")
+    f.add_argument("--fit", default=None, choices=["gauss3", "lsq", "argmax"],
                    help="peak model (default gauss3)")
-    f.add_argument("--fit-half-width", type=int, default=3,
+    f.add_argument("--fit-half-width", type=int, default=None,
                    help="frames kept each side of the peak (default 3)")
-    f.add_argument("--min-confidence", type=float, default=0.5,
+    f.add_argument("--min-confidence", type=float, default=None,
                    help="pixels below this confidence are unreliable (default 0.5)")
-    f.add_argument("--align", action="store_true", help="register frames first")
+    f.add_argument("--align", action="store_true", default=None,
+                   help="register frames first")
     f.add_argument("--threads", type=int, default=None, metavar="T",
                    help="focus threads per board (default: CPUs / workers; 1 on Dask)")
     f.add_argument("--keep-unreliable", action="store_true",
                    help="keep unreliable points in cloud.ply and the mesh")
+    f.add_argument("--inspect-config", type=Path, default=None, metavar="JSON",
+                   help="JSON file of InspectConfig settings (see docs/inspect.md)")
+    f.add_argument("--min-reliable-fraction", type=float, default=None,
+                   help="joints with fewer reliable pixels are 'unreliable' (default 0.5)")
+    f.add_argument("--no-html", action="store_true", help="skip each board's report.html")
     p.set_defaults(func=run)
 
 
 def run(args: argparse.Namespace) -> int:
+    import dataclasses
     import os
 
     from ..batch import run_batch
     from ..cli import progress_callback
     from ..errors import InputError
-    from ..sff import FocusConfig
+    from ..pipeline import inspection_focus_config
+    from .inspect import inspect_config_from
 
     if args.workers is not None and (args.scheduler or args.dask_local is not None):
         raise InputError("--workers sizes the local process pool; with --scheduler or "
                          "--dask-local the Dask workers run the boards")
+    on_dask = bool(args.scheduler) or args.dask_local is not None
     threads = args.threads
     if threads is None:
-        if args.scheduler or args.dask_local is not None:
-            threads = 1
-        else:
-            threads = max(1, (os.cpu_count() or 1) // (args.workers or os.cpu_count() or 1))
-    focus = FocusConfig(operator=args.operator, window_px=args.window_px, fit=args.fit,
-                        fit_half_width=args.fit_half_width,
-                        min_confidence=args.min_confidence, align=args.align, workers=threads)
+        threads = 1 if on_dask else max(1, (os.cpu_count() or 1)
+                                        // (args.workers or os.cpu_count() or 1))
+    given = {k: getattr(args, k) for k in ("operator", "window_px", "fit", "fit_half_width",
+                                           "min_confidence", "align")
+             if getattr(args, k) is not None}
+    focus = dataclasses.replace(inspection_focus_config(), workers=threads, **given)
     progress = progress_callback(args, "boards", unit="board")
     try:
         res = run_batch(args.stacks_dir, args.board, args.out, workers=args.workers,
                         scheduler=args.scheduler, dask_workers=args.dask_local,
                         force=args.force, focus_config=focus,
-                        keep_unreliable=args.keep_unreliable, progress=progress)
+                        inspect_config=inspect_config_from(args),
+                        keep_unreliable=args.keep_unreliable, html=not args.no_html,
+                        progress=progress)
     finally:
         progress.close()
     c = res.counts()
