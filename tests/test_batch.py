@@ -184,7 +184,8 @@ def test_dask_local_cluster_gives_the_pool_reports(pool_run, stacks, tmp_path):
 
     out = tmp_path / "reports"
     with LocalCluster(n_workers=2, threads_per_worker=1, processes=True, host="127.0.0.1",
-                      dashboard_address=None) as cluster:
+                      dashboard_address=None,  # and its HTTP endpoint on a free port:
+                      scheduler_kwargs={"dashboard_address": "127.0.0.1:0"}) as cluster:
         res = run_batch(stacks, BOARD, out, scheduler=cluster.scheduler_address)
     assert res.executor.startswith("dask(tcp://127.0.0.1:")
     assert res.exit_code == pool_run.exit_code

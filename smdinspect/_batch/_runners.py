@@ -27,6 +27,12 @@ log = logging.getLogger(__name__)
 
 OnResult = Callable[[BoardResult], None]
 
+#: ``dashboard_address=None`` switches the Bokeh dashboard off, but the scheduler still
+#: serves a small HTTP endpoint (health, metrics) on port 8787 by default: put it on a
+#: free port of 127.0.0.1 so that concurrent runs never collide.
+LOCAL_CLUSTER_QUIET = {"dashboard_address": None,
+                       "scheduler_kwargs": {"dashboard_address": "127.0.0.1:0"}}
+
 _CRASH_REASON = ("the worker process died while inspecting this board (crash or out of "
                  "memory); it was retried alone and died again")
 
@@ -175,7 +181,7 @@ def dask_client(*, scheduler: str | None = None, local_workers: int | None = Non
     cluster = None
     if local_workers is not None:
         cluster = LocalCluster(n_workers=local_workers, threads_per_worker=1, processes=True,
-                               host="127.0.0.1", dashboard_address=None)
+                               host="127.0.0.1", **LOCAL_CLUSTER_QUIET)
         client = Client(cluster)
         where = f"dask-local({local_workers} workers)"
     else:
