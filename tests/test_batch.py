@@ -476,3 +476,22 @@ def test_one_batch_per_report_folder(stacks, tmp_path):
     with _locked(out):
         with pytest.raises(InputError, match="another smdinspect batch is writing"):
             run_batch(stacks, BOARD, out, workers=1)
+
+
+def test_clean_leftovers_removes_only_temporary_folders(tmp_path):
+    from smdinspect._batch import clean_leftovers
+
+    board = tmp_path / "line" / "board"
+    board.mkdir(parents=True)
+    (board / DONE_MARKER).write_text("{}")
+    temp = [tmp_path / "line" / ".smdinspect-partial-board-x1",
+            tmp_path / "line" / ".smdinspect-old-board-x2",
+            board / ".smdinspect-partial-inner-x3"]
+    for t in temp:
+        t.mkdir()
+        (t / "report.json").write_text("half")
+    keep = tmp_path / "line" / ".other"
+    keep.mkdir()
+    assert sorted(clean_leftovers(tmp_path)) == sorted(temp)
+    assert not any(t.exists() for t in temp)
+    assert keep.is_dir() and (board / DONE_MARKER).is_file()

@@ -410,15 +410,12 @@ def _fsync_dir(folder: Path) -> None:
 def clean_leftovers(reports_dir: str | os.PathLike) -> list[Path]:
     """Remove the temporary folders a killed run left under ``reports_dir``.
 
-    Only folders named ``.smdinspect-partial-*`` or ``.smdinspect-old-*`` are removed;
-    finished board folders (holding a done-marker) are not searched. Returns the
-    removed paths.
+    Only folders named ``.smdinspect-partial-*`` or ``.smdinspect-old-*`` are removed
+    (the caller holds the report folder's lock, so no running batch owns them).
+    Returns the removed paths.
     """
     removed = []
-    for dirpath, dirnames, filenames in os.walk(reports_dir):
-        if DONE_MARKER in filenames or ERROR_FILE in filenames:
-            dirnames[:] = []
-            continue
+    for dirpath, dirnames, _ in os.walk(reports_dir):
         keep = []
         for name in dirnames:
             if name.startswith((PARTIAL_PREFIX, OLD_PREFIX)):
@@ -429,4 +426,3 @@ def clean_leftovers(reports_dir: str | os.PathLike) -> list[Path]:
                 keep.append(name)
         dirnames[:] = keep
     return removed
-
