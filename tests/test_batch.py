@@ -385,7 +385,8 @@ def test_crashing_worker_fails_only_its_board(stacks, tmp_path):
 
 def _result(status: str) -> BoardResult:
     st = BoardStatus(status)
-    return BoardResult(stack=status, status=st, exit_code={"ok": 0, "defects": 1, "error": 3}[status],
+    code = {"ok": 0, "defects": 1, "error": 3}[status]
+    return BoardResult(stack=status, status=st, exit_code=code,
                        joints=None, defects=None, unreliable=None, reason="", seconds=0.0,
                        skipped=False, out_dir="")
 

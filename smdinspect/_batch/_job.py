@@ -166,16 +166,23 @@ def run_board(job: BoardJob) -> BoardResult:
         digest = stack_input_sha256(job.stack_dir, board_sha256=job.board_sha256,
                                     settings=job.settings)
     except OSError as exc:
-        return _error(job, t0, 2, f"cannot read {Path(job.stack_dir) / 'stack.json'}: "
-                                  f"{exc.strerror or exc}", digest="")
+        result = _error(job, t0, 2, f"cannot read {Path(job.stack_dir) / 'stack.json'}: "
+                                    f"{exc.strerror or exc}", digest="")
+        record_error(job, result)
+        return result
     if not job.force:
         done = read_done_marker(out_dir, input_sha256=digest)
         if done is not None:
             return replace(done, stack=job.name, out_dir=job.out_dir, skipped=True)
 
-    out_dir.parent.mkdir(parents=True, exist_ok=True)
-    tmp = Path(tempfile.mkdtemp(prefix=f"{PARTIAL_PREFIX}{out_dir.name}-", dir=out_dir.parent))
-    os.chmod(tmp, 0o777 & ~_UMASK)
+    try:
+        out_dir.parent.mkdir(parents=True, exist_ok=True)
+        tmp = Path(tempfile.mkdtemp(prefix=f"{PARTIAL_PREFIX}{out_dir.name}-",
+                                    dir=out_dir.parent))
+        os.chmod(tmp, 0o777 & ~_UMASK)
+    except OSError as exc:
+        return _error(job, t0, 2, f"cannot create the report folder {out_dir}: "
+                                  f"{exc.strerror or exc}", digest=digest)
     try:
         limit_native_threads(job.threads)
         result = _inspect_into(job, tmp, t0, digest)

@@ -130,6 +130,7 @@ def run_batch(
     out_dir: str | os.PathLike,
     *,
     workers: int | None = None,
+    threads: int | None = None,
     scheduler: str | None = None,
     dask_workers: int | None = None,
     force: bool = False,
@@ -167,8 +168,12 @@ def run_batch(
         The batch's report folder (created). May lie inside ``stacks_dir`` (it is not
         searched) but not contain it.
     workers : int, optional
-        Size of the local process pool (default ``os.cpu_count()``). Only for the
-        local pool.
+        Size of the local process pool (default ``os.cpu_count()``, at most one process
+        per board). Only for the local pool.
+    threads : int, optional
+        Threads per board (focus measure, OpenCV, Open3D; replaces
+        ``focus_config.workers``). Default: the worker's share of the CPUs,
+        ``max(1, cpu_count // pool size)`` in the local pool, 1 on Dask.
     scheduler : str, optional
         Run on an existing Dask distributed cluster at this address
         (``tcp://HOST:8786``); its workers must import the same smdinspect and see the
@@ -180,9 +185,8 @@ def run_batch(
         Redo every board, even those whose reports are up to date.
     focus_config : smdinspect.sff.FocusConfig, optional
         Defaults to the inspection's own default
-        (:func:`smdinspect.pipeline.inspection_focus_config`) with ``workers`` (focus
-        threads per board) set to ``max(1, cpu_count // pool size)`` for the local pool
-        and 1 on Dask.
+        (:func:`smdinspect.pipeline.inspection_focus_config`); its ``workers`` is set
+        to ``threads``.
     inspect_config : smdinspect.inspect.InspectConfig, optional
         Defaults to ``InspectConfig()``.
     keep_unreliable : bool
@@ -218,7 +222,8 @@ def run_batch(
     if workers is not None and (scheduler is not None or dask_workers is not None):
         raise InputError("workers sizes the local process pool; with a Dask cluster its "
                          "workers run the boards")
-    for name, value in (("workers", workers), ("dask_workers", dask_workers)):
+    for name, value in (("workers", workers), ("dask_workers", dask_workers),
+                        ("threads", threads)):
         if value is not None and (isinstance(value, bool) or not isinstance(value, int)
                                   or value < 1):
             raise InputError(f"{name} must be an integer >= 1; got {value!r}")
@@ -245,12 +250,15 @@ def run_batch(
     board_obj = load_board(board)
     board_sha256 = file_sha256(board)
     on_dask = scheduler is not None or dask_workers is not None
-    pool_size = workers or (os.cpu_count() or 1)
+    # No more pool processes than boards; the CPUs are shared among those that run.
+    pool_size = min(workers or (os.cpu_count() or 1), len(stacks))
     # Each worker's share of the CPUs: Dask workers run one board per thread
     # (LocalCluster: one thread per worker), the local pool splits the CPUs.
-    threads = 1 if on_dask else max(1, (os.cpu_count() or 1) // pool_size)
+    if threads is None:
+        threads = 1 if on_dask else max(1, (os.cpu_count() or 1) // pool_size)
     if focus_config is None:
-        focus_config = dataclasses.replace(inspection_focus_config(), workers=threads)
+        focus_config = inspection_focus_config()
+    focus_config = dataclasses.replace(focus_config, workers=threads)
     if inspect_config is None:
         inspect_config = InspectConfig()
     focus_key = {k: v for k, v in focus_config.to_dict().items() if k not in _NEUTRAL_FOCUS_KEYS}

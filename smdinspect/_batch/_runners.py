@@ -175,7 +175,8 @@ def dask_client(*, scheduler: str | None = None, local_workers: int | None = Non
     try:
         from distributed import Client, LocalCluster
     except ImportError as exc:  # pragma: no cover - dask[distributed] is a dependency
-        raise InputError(f"Dask is not installed ({exc}); pip install 'dask[distributed]'") from None
+        raise InputError(f"Dask is not installed ({exc}); "
+                         "pip install 'dask[distributed]'") from None
     from .. import __version__
 
     cluster = None
@@ -188,7 +189,8 @@ def dask_client(*, scheduler: str | None = None, local_workers: int | None = Non
         try:
             client = Client(scheduler, timeout=f"{connect_timeout_s}s")
         except (OSError, TimeoutError) as exc:
-            raise InputError(f"cannot connect to the Dask scheduler at {scheduler}: {exc}") from None
+            raise InputError(f"cannot connect to the Dask scheduler at {scheduler}: "
+                             f"{exc}") from None
         where = f"dask({scheduler})"
     try:
         try:

@@ -62,7 +62,7 @@ def register(sub: argparse._SubParsersAction) -> None:
     f.add_argument("--align", action="store_true", default=None,
                    help="register frames first")
     f.add_argument("--threads", type=int, default=None, metavar="T",
-                   help="focus threads per board (default: CPUs / workers; 1 on Dask)")
+                   help="threads per board (default: CPUs / workers; 1 on Dask)")
     f.add_argument("--keep-unreliable", action="store_true",
                    help="keep unreliable points in cloud.ply and the mesh")
     f.add_argument("--inspect-config", type=Path, default=None, metavar="JSON",
@@ -75,7 +75,6 @@ def register(sub: argparse._SubParsersAction) -> None:
 
 def run(args: argparse.Namespace) -> int:
     import dataclasses
-    import os
 
     from ..batch import run_batch
     from ..cli import progress_callback
@@ -86,20 +85,15 @@ def run(args: argparse.Namespace) -> int:
     if args.workers is not None and (args.scheduler or args.dask_local is not None):
         raise InputError("--workers sizes the local process pool; with --scheduler or "
                          "--dask-local the Dask workers run the boards")
-    on_dask = bool(args.scheduler) or args.dask_local is not None
-    threads = args.threads
-    if threads is None:
-        threads = 1 if on_dask else max(1, (os.cpu_count() or 1)
-                                        // (args.workers or os.cpu_count() or 1))
     given = {k: getattr(args, k) for k in ("operator", "window_px", "fit", "fit_half_width",
                                            "min_confidence", "align")
              if getattr(args, k) is not None}
-    focus = dataclasses.replace(inspection_focus_config(), workers=threads, **given)
+    focus = dataclasses.replace(inspection_focus_config(), **given)
     progress = progress_callback(args, "boards", unit="board")
     try:
         res = run_batch(args.stacks_dir, args.board, args.out, workers=args.workers,
-                        scheduler=args.scheduler, dask_workers=args.dask_local,
-                        force=args.force, focus_config=focus,
+                        threads=args.threads, scheduler=args.scheduler,
+                        dask_workers=args.dask_local, force=args.force, focus_config=focus,
                         inspect_config=inspect_config_from(args),
                         keep_unreliable=args.keep_unreliable, html=not args.no_html,
                         progress=progress)
