@@ -4,7 +4,7 @@
 ``stacks_dir`` against one reference board, writes each board's reports into
 ``out_dir/<stack path>/`` and a summary (CSV, JSON) plus one merged JUnit file into
 ``out_dir``. A bad stack fails only its board; reruns skip boards whose inputs did not
-change; a killed run leaves no half-written report. See ``docs/batch.md``.
+change; a killed run leaves no half-written report. See the README, "Many boards".
 
 Examples
 --------

@@ -9,6 +9,7 @@ are small (300 x 300 px at 0.04 mm/px, 23 frames) and rendered once per module.
 from __future__ import annotations
 
 import csv
+import dataclasses
 import json
 import os
 import shutil
@@ -162,14 +163,16 @@ def test_pool_batch_reports_every_board(pool_run, stacks):
 
 
 def test_batch_report_is_the_pipeline_report(pool_run, stacks, tmp_path):
-    """A board's batch report equals a direct ``inspect_stack`` call (one thread)."""
+    """A board's batch report (one thread per board) equals a direct ``inspect_stack``
+    call on two threads: the report does not depend on the thread count."""
     from smdinspect._batch._job import limit_native_threads
-    from smdinspect.pipeline import inspect_stack
+    from smdinspect.pipeline import inspect_stack, inspection_focus_config
     from smdinspect.stack import FocalStack
 
     name = "lineB/board3"
-    limit_native_threads(1)
-    res = inspect_stack(FocalStack.open(stacks / name), BOARD, tmp_path)
+    limit_native_threads(2)
+    cfg = dataclasses.replace(inspection_focus_config(), workers=2)
+    res = inspect_stack(FocalStack.open(stacks / name), BOARD, tmp_path, focus_config=cfg)
     b = pool_run.board(name)
     assert (b.exit_code, b.defects, b.unreliable) == (res.exit_code, len(res.defects),
                                                      len(res.unreliable))

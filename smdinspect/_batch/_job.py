@@ -205,10 +205,7 @@ def limit_native_threads(threads: int) -> None:
     """Let OpenCV and Open3D use at most ``threads`` threads in this process.
 
     A worker's share of the CPUs: without it every worker starts one thread per CPU
-    (oversubscription). With one thread per worker the pipeline is also repeatable:
-    Open3D's multi-threaded RANSAC plane fit draws its samples in a scheduling-dependent
-    order even with a fixed seed (isl-org/Open3D#7270), so reports can differ in the
-    last digits between two runs otherwise.
+    (oversubscription).
     """
     try:
         import cv2

@@ -66,7 +66,7 @@ def register(sub: argparse._SubParsersAction) -> None:
     f.add_argument("--keep-unreliable", action="store_true",
                    help="keep unreliable points in cloud.ply and the mesh")
     f.add_argument("--inspect-config", type=Path, default=None, metavar="JSON",
-                   help="JSON file of InspectConfig settings (see docs/inspect.md)")
+                   help="JSON file of InspectConfig settings (see the README, 'Inspection')")
     f.add_argument("--min-reliable-fraction", type=float, default=None,
                    help="joints with fewer reliable pixels are 'unreliable' (default 0.5)")
     f.add_argument("--no-html", action="store_true", help="skip each board's report.html")

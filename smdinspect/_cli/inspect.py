@@ -27,7 +27,7 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--board", required=True, type=Path, help="reference board file (JSON)")
     p.add_argument("--out", required=True, type=Path, help="output directory")
     p.add_argument("--inspect-config", type=Path, default=None, metavar="JSON",
-                   help="JSON file of InspectConfig settings (see docs/inspect.md)")
+                   help="JSON file of InspectConfig settings (see the README, 'Inspection')")
     p.add_argument("--min-reliable-fraction", type=float, default=None,
                    help="joints with fewer reliable pixels are 'unreliable' (default 0.5)")
     p.add_argument("--no-html", action="store_true", help="skip report.html")

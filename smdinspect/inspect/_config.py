@@ -59,7 +59,7 @@ def _check_number(name: str, value: Any, lo: float | None = None, hi: float | No
 class InspectConfig:
     """Settings of :func:`smdinspect.inspect.inspect_surface`.
 
-    Every threshold is documented with the rule that uses it in ``docs/inspect.md``.
+    Every threshold is documented with the rule that uses it in the README ("Verdict rules").
     Heights are above the locally fitted board plane, in mm.
 
     Parameters
