@@ -80,6 +80,12 @@ class InspectConfig:
         bare finish, else ``insufficient``.
     fillet_model : FilletModel or str
         ``"meniscus"`` (default) or ``"percentile"``; see :mod:`._measure`.
+    min_fillet_reach : float
+        Chips, meniscus fit: when the reliable pixels reach less than this fraction of
+        the fitted fillet height (the fillet's top lies in the band next to the body
+        that shape from focus cannot measure), the fitted max is an extrapolation. It
+        may then pass a joint but not fail it: below or above the band, the joint is
+        ``unreliable``, unless the pixels' own percentile is above the band (excess).
     side_fillet_ratio : float
         Gull-wing: the side fillets' percentile height divided by this estimates the
         heel fillet height when no solder shows above the lead. A calibration of how
@@ -167,6 +173,7 @@ class InspectConfig:
     missing_height_mm: float = 0.04
     bare_missing_fraction: float = 0.5
     fillet_model: FilletModel = FilletModel.MENISCUS
+    min_fillet_reach: float = 0.4
     cap_excess_mm: float = 0.05
     side_fillet_ratio: float = 0.5
     standing_fraction: float = 0.05
@@ -213,7 +220,7 @@ class InspectConfig:
         _check_number("cap_excess_mm", self.cap_excess_mm, 0.0, lo_open=True)
         _check_number("side_fillet_ratio", self.side_fillet_ratio, 0.0, 1.0, lo_open=True)
         for name in ("bridge_min_fraction", "component_present_fraction", "min_match_score",
-                     "bare_missing_fraction", "standing_fraction",
+                     "bare_missing_fraction", "standing_fraction", "min_fillet_reach",
                      "min_fitness", "shift_tol_fraction"):
             _check_number(name, getattr(self, name), 0.0, 1.0)
         _check_number("tombstone_tilt_deg", self.tombstone_tilt_deg, 0.0, 90.0, lo_open=True)

@@ -110,6 +110,8 @@ class JointMeasurement:
     foot_mm: float = NAN            # gull-wing: percentile over the foot
     side_mm: float = NAN            # gull-wing: percentile over the side region
     cap_mm: float = NAN             # chip: end-cap top above its nominal height
+    fillet_reach: float = NAN       # chip meniscus: fraction of F the fitted pixels reach
+    observed_mm: float = NAN        # the solder area's percentile (what the pixels show)
     bare_fraction: float = NAN      # visible pad looking like bare finish (colour)
     gap_mm: float = NAN             # highest covered level towards a neighbour
     gap_neighbour: str = ""
@@ -435,6 +437,9 @@ def _meniscus(d: np.ndarray, length: float, z: np.ndarray, uz: np.ndarray,
     if info is not None:
         r = z[keep] - F * g[keep]
         info["rel_rms"] = float(np.sqrt(np.mean(r ** 2)) / max(abs(F), 1e-3))
+        # How far up the meniscus the data go: the model's height fraction at the
+        # highest of the kept pixels (95th percentile of g, robust to a stray pixel).
+        info["reach"] = float(np.percentile(g[keep], 95))
     gk = g[keep]
     uk = uz[keep]
     uf = float(np.sqrt(np.nansum(gk ** 2 * uk ** 2)) / np.sum(gk ** 2)) if np.isfinite(uk).any() else NAN
@@ -469,6 +474,7 @@ def _measure_chip(comp, joint, win: _Win, config: InspectConfig, level: float,
     _summaries(m, h, uu, n, n_rel, p, config, u_level)
     pct, u_pct = _percentile_max(h, uu, config.height_percentile)
     m.max_mm, m.u_max_mm, m.max_method = pct, _hypot(u_pct, u_level), "percentile"
+    m.observed_mm = pct
     if config.fillet_model == "meniscus":
         pad_u = comp.to_local(joint.polygon_mm) @ out
         length = float(pad_u.max()) - hl
@@ -476,6 +482,7 @@ def _measure_chip(comp, joint, win: _Win, config: InspectConfig, level: float,
         if length > 2 * mg and end.sum() >= 8:
             info: dict = {}
             F, uF = _meniscus(u[end] - hl, length, win.h[end], win.u[end], info)
+            m.fillet_reach = info.get("reach", NAN)
             if np.isfinite(F) and F > joint.max_height_mm and info.get("rel_rms", 0.0) > 0.1:
                 # Not a meniscus: a bulging (convex) fillet fits a concave model badly
                 # and the fit overshoots. Its observed percentile is its height.

@@ -59,6 +59,9 @@ class JointResult:
     side_height_mm: float = float("nan")
     #: Chip: end-cap top minus the nominal body top.
     cap_excess_mm: float = float("nan")
+    #: Chip meniscus fit: the model's height fraction (of the fitted max) at the highest
+    #: reliable pixels; small means the max height is an extrapolation.
+    fillet_reach: float = float("nan")
     #: Pad outline in image pixels, (N, 2) (col, row); for pictures.
     polygon_px: np.ndarray | None = field(default=None, repr=False, compare=False)
 
@@ -90,6 +93,7 @@ class JointResult:
                 "foot_height_mm": _r(self.foot_height_mm),
                 "side_height_mm": _r(self.side_height_mm),
                 "cap_excess_mm": _r(self.cap_excess_mm),
+                "fillet_reach": _r(self.fillet_reach, 3),
                 "gap_height_mm": _r(self.gap_height_mm),
                 "bare_fraction": _r(self.bare_fraction, 3),
             },

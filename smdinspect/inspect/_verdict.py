@@ -26,16 +26,21 @@ Joint level
    reliable): the lead stands more than ``lifted_lead_gap_mm`` above its nominal top
    (solder thickness + lead thickness) and the solder beside it does not reach the
    lead's underside.
-7. ``unreliable``: fewer than ``min_reliable_fraction`` of the solder area's pixels are
+7. ``missing`` by colour: at least ``bare_missing_fraction`` of the visible pad looks
+   like the bare finish (the all-in-focus colour does not need focus texture) and no
+   reliable height reaches the joint's ``min_height_mm``.
+8. ``unreliable``: fewer than ``min_reliable_fraction`` of the solder area's pixels are
    reliable, or no max height could be measured. Never a pass or a fail.
-8. ``bridge``: a path across the gap to a neighbouring pad of the same component is
+9. ``bridge``: a path across the gap to a neighbouring pad of the same component is
    covered higher than ``bridge_height_mm`` along ``bridge_min_fraction`` of its length.
-9. ``missing``: the max height is below the joint's ``min_height_mm`` and the visible
-   pad looks bare (colour cue, ``bare_missing_fraction``); without a colour cue: the
-   max height is below ``missing_height_mm``.
-10. ``insufficient``: below the joint's ``min_height_mm``.
-11. ``excess``: above the joint's ``max_height_mm``.
-12. ``ok`` otherwise.
+10. ``missing`` without a colour cue: the max height is below ``missing_height_mm``.
+11. ``insufficient``: below the joint's ``min_height_mm``.
+12. ``excess``: above the joint's ``max_height_mm``.
+    Rules 11 and 12 need a measured max: when a chip's meniscus fit reaches less than
+    ``min_fillet_reach`` of its height, the fillet's top was not measured and the max is
+    an extrapolation; the joint is then ``unreliable`` instead, unless the solder
+    area's own percentile is already above the band (excess seen directly).
+13. ``ok`` otherwise.
 """
 
 from __future__ import annotations
@@ -106,7 +111,8 @@ def judge_joint(joint, comp, m: JointMeasurement, comp_result: ComponentResult,
         expected_min_mm=joint.min_height_mm, expected_max_mm=joint.max_height_mm,
         verdict=v, reason=reason, lead_height_mm=m.lead_mm, gap_height_mm=m.gap_mm,
         max_method=m.max_method, bare_fraction=m.bare_fraction, foot_height_mm=m.foot_mm,
-        side_height_mm=m.side_mm, cap_excess_mm=m.cap_mm, polygon_px=m.polygon_px)
+        side_height_mm=m.side_mm, cap_excess_mm=m.cap_mm, fillet_reach=m.fillet_reach,
+        polygon_px=m.polygon_px)
 
 
 def _joint_rule(joint, comp, m: JointMeasurement, comp_result: ComponentResult,
@@ -126,6 +132,10 @@ def _joint_rule(joint, comp, m: JointMeasurement, comp_result: ComponentResult,
     if comp.kind == "chip" and math.isfinite(m.cap_mm) and m.cap_mm > config.cap_excess_mm:
         return Verdict.EXCESS, (f"solder over the end cap {_um(m.cap_mm)} above the body top "
                                 f"(> {_um(config.cap_excess_mm)})")
+    bare = math.isfinite(m.bare_fraction) and m.bare_fraction >= config.bare_missing_fraction
+    if bare and not (m.max_mm >= joint.min_height_mm):   # NaN (nothing measured) counts
+        return Verdict.MISSING, (f"no solder: {m.bare_fraction:.0%} of the visible pad looks bare; "
+                                 f"max height {_um(m.max_mm)}, {m.reliable_fraction:.0%} reliable")
     if m.reliable_fraction < config.min_reliable_fraction or not math.isfinite(m.max_mm):
         return Verdict.UNRELIABLE, (f"only {m.reliable_fraction:.0%} of the solder area is reliable "
                                     f"(< {config.min_reliable_fraction:.0%}); not judged")
@@ -136,13 +146,17 @@ def _joint_rule(joint, comp, m: JointMeasurement, comp_result: ComponentResult,
     h, u = m.max_mm, m.u_max_mm
     pm = f" ± {_um(u)}" if math.isfinite(u) else ""
     how = f" ({m.max_method})" if m.max_method else ""
+    if h < joint.min_height_mm and not math.isfinite(m.bare_fraction) \
+            and h < config.missing_height_mm:
+        return Verdict.MISSING, f"no solder: max height {_um(h)}{pm}{how} < {_um(config.missing_height_mm)}"
+    outside = h < joint.min_height_mm or h > joint.max_height_mm
+    if outside and m.fillet_reach < config.min_fillet_reach \
+            and not m.observed_mm > joint.max_height_mm:
+        return Verdict.UNRELIABLE, (f"fillet top not measured (reliable pixels reach "
+                                    f"{m.fillet_reach:.0%} of the fitted height, < "
+                                    f"{config.min_fillet_reach:.0%}): extrapolated {_um(h)}{pm}, "
+                                    f"not judged")
     if h < joint.min_height_mm:
-        if math.isfinite(m.bare_fraction):
-            if m.bare_fraction >= config.bare_missing_fraction:
-                return Verdict.MISSING, (f"no solder: {m.bare_fraction:.0%} of the visible pad looks bare; "
-                                         f"max height {_um(h)}{pm}{how}")
-        elif h < config.missing_height_mm:
-            return Verdict.MISSING, f"no solder: max height {_um(h)}{pm}{how} < {_um(config.missing_height_mm)}"
         return Verdict.INSUFFICIENT, f"max solder height {_um(h)}{pm}{how} < min {_um(joint.min_height_mm)}"
     if h > joint.max_height_mm:
         return Verdict.EXCESS, f"max solder height {_um(h)}{pm}{how} > max {_um(joint.max_height_mm)}"

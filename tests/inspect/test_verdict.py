@@ -1,0 +1,88 @@
+"""The joint rules on hand-made measurements: what the pixels show against the band.
+
+The end-to-end tests (test_inspect, test_pipeline) prove the rules on rendered boards;
+these pin the two rules that decide what a measurement may claim: colour evidence of a
+bare pad, and a meniscus whose top was never measured.
+"""
+
+from __future__ import annotations
+
+import math
+
+import pytest
+
+from smdinspect.inspect import InspectConfig, Verdict, load_board
+from smdinspect.inspect._measure import JointMeasurement
+from smdinspect.inspect._result import ComponentResult
+from smdinspect.inspect._verdict import judge_joint
+
+from ._synthetic import DEMO
+
+NAN = math.nan
+
+
+@pytest.fixture(scope="module")
+def c2():
+    board = load_board(DEMO)
+    comp = board.component("C2")
+    joint = board.joint("C2.1")
+    body = ComponentResult(ref="C2", kind="chip", package=comp.package, verdict=Verdict.OK,
+                           reason="", present_fraction=1.0, body_height_mm=0.53,
+                           offset_mm=(0.0, 0.0), tilt_deg=0.0, reliable_fraction=0.9)
+    return joint, comp, body
+
+
+def _judge(c2, **kw):
+    joint, comp, body = c2
+    m = JointMeasurement(joint.id, (0.0, 0.0), 200, kw.pop("reliable_fraction", 0.8), **kw)
+    return judge_joint(joint, comp, m, body, InspectConfig())
+
+
+def test_meniscus_reaching_its_top_is_judged(c2):
+    joint = c2[0]
+    low = joint.min_height_mm - 0.03
+    r = _judge(c2, max_mm=low, max_method="meniscus", fillet_reach=0.55, observed_mm=low - 0.05)
+    assert r.verdict is Verdict.INSUFFICIENT
+    r = _judge(c2, max_mm=joint.nominal_height_mm, max_method="meniscus", fillet_reach=0.2,
+               observed_mm=0.1)
+    assert r.verdict is Verdict.OK          # an extrapolation may pass a joint...
+
+
+def test_meniscus_extrapolated_below_or_above_the_band_is_unreliable(c2):
+    joint = c2[0]
+    low = joint.min_height_mm - 0.03
+    r = _judge(c2, max_mm=low, max_method="meniscus", fillet_reach=0.3, observed_mm=low - 0.05)
+    assert r.verdict is Verdict.UNRELIABLE  # ...but never fail it
+    assert "fillet top not measured" in r.reason and "30%" in r.reason
+    high = joint.max_height_mm + 0.1
+    r = _judge(c2, max_mm=high, max_method="meniscus", fillet_reach=0.3,
+               observed_mm=joint.max_height_mm - 0.1)
+    assert r.verdict is Verdict.UNRELIABLE
+    # Excess the pixels show directly needs no extrapolation.
+    r = _judge(c2, max_mm=high, max_method="meniscus", fillet_reach=0.3,
+               observed_mm=joint.max_height_mm + 0.05)
+    assert r.verdict is Verdict.EXCESS
+
+
+def test_a_bare_pad_is_missing_even_when_too_little_of_it_is_reliable(c2):
+    r = _judge(c2, reliable_fraction=0.2, max_mm=0.0, bare_fraction=0.9, observed_mm=0.0)
+    assert r.verdict is Verdict.MISSING and "looks bare" in r.reason
+    r = _judge(c2, reliable_fraction=0.0, bare_fraction=0.9)      # nothing measured at all
+    assert r.verdict is Verdict.MISSING
+    # Colour is not enough when the heights show solder at full height...
+    joint = c2[0]
+    r = _judge(c2, max_mm=joint.nominal_height_mm, max_method="meniscus", fillet_reach=0.6,
+               observed_mm=joint.nominal_height_mm, bare_fraction=0.9)
+    assert r.verdict is Verdict.OK
+    # ...and a pad that does not look bare stays unreliable when too little is measured.
+    r = _judge(c2, reliable_fraction=0.2, max_mm=0.0, bare_fraction=0.1, observed_mm=0.0)
+    assert r.verdict is Verdict.UNRELIABLE
+
+
+def test_without_colour_a_flat_pad_is_missing_and_a_low_fillet_insufficient(c2):
+    joint = c2[0]
+    r = _judge(c2, max_mm=0.01, max_method="percentile", observed_mm=0.01)
+    assert r.verdict is Verdict.MISSING
+    r = _judge(c2, max_mm=joint.min_height_mm - 0.02, max_method="percentile",
+               observed_mm=joint.min_height_mm - 0.02)
+    assert r.verdict is Verdict.INSUFFICIENT
