@@ -22,6 +22,7 @@ frames, board file, settings) did not change; --force redoes them.
 
 
 def register(sub: argparse._SubParsersAction) -> None:
+    from ..inspect._config import InspectConfig
     from ..sff import OPERATORS
 
     p = sub.add_parser(
@@ -68,7 +69,8 @@ def register(sub: argparse._SubParsersAction) -> None:
     f.add_argument("--inspect-config", type=Path, default=None, metavar="JSON",
                    help="JSON file of InspectConfig settings (see the README, 'Inspection')")
     f.add_argument("--min-reliable-fraction", type=float, default=None,
-                   help="joints with fewer reliable pixels are 'unreliable' (default 0.5)")
+                   help="joints with a smaller fraction of reliable pixels are 'unreliable' "
+                        f"(default {InspectConfig.min_reliable_fraction})")
     f.add_argument("--no-html", action="store_true", help="skip each board's report.html")
     p.set_defaults(func=run)
 

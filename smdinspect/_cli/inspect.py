@@ -15,6 +15,7 @@ log = logging.getLogger(__name__)
 
 
 def register(sub: argparse._SubParsersAction) -> None:
+    from ..inspect._config import InspectConfig
     from .reconstruct import add_stack_arguments
 
     p = sub.add_parser(
@@ -29,7 +30,8 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--inspect-config", type=Path, default=None, metavar="JSON",
                    help="JSON file of InspectConfig settings (see the README, 'Inspection')")
     p.add_argument("--min-reliable-fraction", type=float, default=None,
-                   help="joints with fewer reliable pixels are 'unreliable' (default 0.5)")
+                   help="joints with a smaller fraction of reliable pixels are 'unreliable' "
+                        f"(default {InspectConfig.min_reliable_fraction})")
     p.add_argument("--no-html", action="store_true", help="skip report.html")
     # Inspection focuses with a 5-px window by default (steep, narrow fillets; see
     # smdinspect.pipeline.inspection_focus_config).
