@@ -121,7 +121,9 @@ def sweep_heights(height_range_mm, *, step_mm: float, frames: int | None = None,
 
     Default: from ``margin_steps`` steps below the lowest point of the scene to
     ``margin_steps`` steps above its highest point. ``frames`` centres that many frames on
-    the scene (or on ``z_range``); ``z_range`` with ``frames`` sets the step.
+    the scene when they span it; when they do not, they start ``margin_steps`` below its
+    lowest point (the board must stay in range; the tops of tall parts are cut off).
+    ``z_range`` with ``frames`` sets the step.
     """
     lo, hi = height_range_mm
     step = float(step_mm)
@@ -144,8 +146,10 @@ def sweep_heights(height_range_mm, *, step_mm: float, frames: int | None = None,
         if frames < 3:
             raise InputError(f"--frames must be >= 3; got {frames}")
         n = int(frames)
-    mid = 0.5 * (lo + hi)
-    top = mid + 0.5 * (n - 1) * step
+    if (n - 1) * step >= hi - lo + 2 * margin_steps * step:
+        top = 0.5 * (lo + hi) + 0.5 * (n - 1) * step
+    else:
+        top = lo - margin_steps * step + (n - 1) * step
     z = top - step * np.arange(n)
     return np.round(z, 9)
 

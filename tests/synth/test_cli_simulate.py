@@ -66,7 +66,11 @@ def test_sweep_heights():
     assert z[-1] <= -0.3 + 1e-9 and z[0] >= 1.3 - 1e-9
     np.testing.assert_allclose(sweep_heights((0, 1), step_mm=0.05, z_range=(0.0, 0.5)),
                                np.linspace(0.5, 0.0, 11))
-    assert len(sweep_heights((0, 1), step_mm=0.05, frames=40)) == 40
+    z = sweep_heights((0, 1), step_mm=0.05, frames=40)       # spans the scene: centred
+    assert len(z) == 40 and abs(z[0] + z[-1] - 1.0) < 1e-9
+    # Too few frames for a tall scene (an upright part): the board stays in range.
+    z = sweep_heights((0, 3.2), step_mm=0.05, frames=40)
+    np.testing.assert_allclose([z[-1], z[0]], [-0.15, -0.15 + 39 * 0.05])
 
 
 def test_simulate_cone_has_about_forty_frames(tmp_path):
