@@ -16,11 +16,17 @@ from smdinspect.synth import board_scene, render_stack
 STEP = 0.05
 
 
-@pytest.fixture(scope="module")
-def board(tmp_path_factory):
-    scene, labels = board_scene("references/demo_board.json", pixel_size_mm=0.02, seed=11,
-                                defects={"R3.1": "insufficient", "U1.4": "bridge",
-                                         "C1.2": "excess"})
+BOARDS = {
+    "demo": ("references/demo_board.json",
+             {"R3.1": "insufficient", "U1.4": "bridge", "C1.2": "excess"}),
+    "dense": ("references/dense_board.json", {}),
+}
+
+
+@pytest.fixture(scope="module", params=sorted(BOARDS))
+def board(request, tmp_path_factory):
+    path, defects = BOARDS[request.param]
+    scene, labels = board_scene(path, pixel_size_mm=0.02, seed=11, defects=defects)
     top = float(scene.height_mm.max())
     z = np.round(np.arange(-3 * STEP, top + 3 * STEP, STEP) - 0.0123, 6)[::-1]  # sweep down
     root = tmp_path_factory.mktemp("board")
