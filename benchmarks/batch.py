@@ -49,13 +49,14 @@ def generate(root: Path, *, n: int, size: int, frames: int, pixel_mm: float) -> 
             cmd += ["--defects", DEFECTS[i % len(DEFECTS)]]
         procs.append(subprocess.Popen(cmd, cwd=REPO, stdout=subprocess.DEVNULL))
         if len(procs) == 2:
-            for p in procs:
-                if p.wait() != 0:
-                    raise SystemExit("simulate board failed")
+            _wait(procs)
             procs = []
-    for p in procs:
-        if p.wait() != 0:
-            raise SystemExit("simulate board failed")
+    _wait(procs)
+
+
+def _wait(procs) -> None:
+    if any(p.wait() != 0 for p in procs):
+        raise SystemExit("simulate board failed")
 
 
 def main() -> None:

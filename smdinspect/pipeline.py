@@ -151,7 +151,7 @@ def inspect_stack(
     from .inspect import load_board
     from .inspect._inspect import inspect_surface
     from .inspect._report import write_not_located, write_reports
-    from .sff import Surface, reconstruct, write_reconstruction
+    from .sff import Surface, reconstruct
     from .stack import FocalStack
 
     out = Path(out_dir)
@@ -176,7 +176,7 @@ def inspect_stack(
     out.mkdir(parents=True, exist_ok=True)
     if surface is None:
         surface = reconstruct(stack, focus_config or inspection_focus_config(), progress=progress)
-        _write_reconstruction(write_reconstruction, surface, out, keep_unreliable)
+        _write_reconstruction(surface, out, keep_unreliable)
     try:
         result = inspect_surface(surface, board, inspect_config)
     except BoardNotLocatedError as exc:
@@ -187,9 +187,11 @@ def inspect_stack(
     return result
 
 
-def _write_reconstruction(writer, surface, out: Path, keep_unreliable: bool) -> None:
+def _write_reconstruction(surface, out: Path, keep_unreliable: bool) -> None:
     """Write the reconstruction into a temporary sibling folder, then move it in."""
+    from .sff import write_reconstruction
+
     with tempfile.TemporaryDirectory(dir=out, prefix=".partial-") as tmp:
-        writer(surface, tmp, keep_unreliable=keep_unreliable)
+        write_reconstruction(surface, tmp, keep_unreliable=keep_unreliable)
         for f in Path(tmp).iterdir():
             shutil.move(str(f), out / f.name)

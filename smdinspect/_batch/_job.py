@@ -87,10 +87,14 @@ class BoardJob:
     #: ``"module:function"`` with the signature of
     #: :func:`smdinspect.pipeline.inspect_stack`, imported in the worker.
     inspect_fn: str = DEFAULT_INSPECT_FN
-    #: Threads OpenCV and Open3D may use in the worker (its share of the CPUs).
-    threads: int = 1
     #: ``False``: no report.html (passed on as ``html=False``).
     html: bool = True
+
+    @property
+    def threads(self) -> int:
+        """Threads OpenCV and Open3D may use in the worker: as many as the focus
+        measure's (the worker's share of the CPUs)."""
+        return int(getattr(self.focus_config, "workers", 1))
 
 
 @dataclass(frozen=True)

@@ -285,7 +285,7 @@ def run_batch(
                      board=board_obj, board_sha256=board_sha256, settings=settings,
                      focus_config=focus_config, inspect_config=inspect_config,
                      keep_unreliable=bool(keep_unreliable), force=bool(force),
-                     inspect_fn=inspect_fn, threads=threads, html=bool(html))
+                     inspect_fn=inspect_fn, html=bool(html))
             for name, path in stacks
         ]
         results: dict[str, BoardResult] = {}

@@ -22,7 +22,7 @@ def register(sub: argparse._SubParsersAction) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
-    from ..cli import Progress
+    from ..cli import progress_callback
     from ..demo import demo_board_path, run_demo
     from ..synth import parse_defects
 
@@ -31,14 +31,14 @@ def run(args: argparse.Namespace) -> int:
         from ..inspect import load_board
 
         defects = parse_defects(args.defects, board=load_board(demo_board_path()))
-    bars = {name: Progress(label, disable=args.quiet)
+    bars = {name: progress_callback(args, label)
             for name, label in (("sweep", "sweep"), ("reconstruct", "focus"))}
     res = run_demo(args.out, seed=args.seed, defects=defects,
                    progress=lambda stage, d, t: bars[stage](d, t))
     result = res.inspection
     truth = {j["id"]: j["class"] for j in res.labels["joints"]}
     joints = result.joints
-    found = {j.id: getattr(j.verdict, "value", j.verdict) for j in joints}
+    found = {j.id: j.verdict.value for j in joints}
     injected = {k: v for k, v in truth.items() if v != "ok"}
     hits = sum(found.get(k) == v for k, v in injected.items())
     # A bridge joins two joints: its partner ("bridged_by") may rightly be called a bridge too.
@@ -49,9 +49,8 @@ def run(args: argparse.Namespace) -> int:
     defective = {k: v for k, v in found.items() if v not in ("ok", "unreliable")}
     print(f"smdinspect demo: board '{result.board}', {len(joints)} joints "
           f"(sweep {res.seconds['sweep']} s, reconstruct + inspect {res.seconds['inspect']} s)")
-    print(f"  registration: {result.registration.summary()}" if hasattr(result.registration, "summary")
-          else f"  registration: fitness {result.registration.fitness:.2f}, "
-               f"rmse {result.registration.rmse_mm:.3f} mm")
+    print(f"  registration: fitness {result.registration.fitness:.2f}, "
+          f"rmse {result.registration.rmse_mm:.3f} mm")
     print(f"  defects found: {len(defective)} "
           + (", ".join(f"{k} {v}" for k, v in sorted(defective.items())) or "none"))
     print(f"  injected: {len(injected)} ({', '.join(f'{k} {v}' for k, v in sorted(injected.items()))}); "

@@ -16,6 +16,7 @@ log = logging.getLogger(__name__)
 
 def register(sub: argparse._SubParsersAction) -> None:
     from ..inspect._config import InspectConfig
+    from ..pipeline import inspection_focus_config
     from .reconstruct import add_stack_arguments
 
     p = sub.add_parser(
@@ -33,9 +34,8 @@ def register(sub: argparse._SubParsersAction) -> None:
                    help="joints with a smaller fraction of reliable pixels are 'unreliable' "
                         f"(default {InspectConfig.min_reliable_fraction})")
     p.add_argument("--no-html", action="store_true", help="skip report.html")
-    # Inspection focuses with a 5-px window by default (steep, narrow fillets; see
-    # smdinspect.pipeline.inspection_focus_config).
-    p.set_defaults(func=run, window_px=5)
+    # Inspection focuses with its own, smaller window by default (steep, narrow fillets).
+    p.set_defaults(func=run, window_px=inspection_focus_config().window_px)
 
 
 def inspect_config_from(args: argparse.Namespace):

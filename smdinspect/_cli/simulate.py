@@ -127,13 +127,13 @@ def sweep_heights(height_range_mm, *, step_mm: float, frames: int | None = None,
     """
     lo, hi = height_range_mm
     step = float(step_mm)
+    if frames is not None and frames < 3:
+        raise InputError(f"--frames must be >= 3; got {frames}")
     if z_range is not None:
         zlo, zhi = z_range
         if zhi <= zlo:
             raise InputError(f"--z-range-mm needs LO < HI; got {zlo},{zhi}")
         if frames is not None:
-            if frames < 3:
-                raise InputError(f"--frames must be >= 3; got {frames}")
             return np.linspace(zhi, zlo, frames)
         n = int(math.floor((zhi - zlo) / step + 1e-9)) + 1
         if n < 3:
@@ -143,8 +143,6 @@ def sweep_heights(height_range_mm, *, step_mm: float, frames: int | None = None,
         zlo, zhi = lo - margin_steps * step, hi + margin_steps * step
         n = int(math.ceil((zhi - zlo) / step - 1e-9)) + 1
     else:
-        if frames < 3:
-            raise InputError(f"--frames must be >= 3; got {frames}")
         n = int(frames)
     if (n - 1) * step >= hi - lo + 2 * margin_steps * step:
         top = 0.5 * (lo + hi) + 0.5 * (n - 1) * step
@@ -171,23 +169,17 @@ def _build_scene(args: argparse.Namespace):
 
 
 def _board_scene(args: argparse.Namespace):
+    from ..demo import demo_board_path
     from ..inspect import load_board
     from ..synth import board_scene, parse_defects
 
-    path = args.board
-    if path is None:
-        path = Path(__file__).resolve().parents[2] / "references" / "demo_board.json"
-        if not path.is_file():
-            raise InputError("no --board given and references/demo_board.json not found")
-    board = load_board(path)
+    board = load_board(args.board if args.board is not None else demo_board_path())
     defects = parse_defects(args.defects, board=board) if args.defects else {}
     offset = _pair(args.offset_mm, "--offset-mm")
     shape = None if args.size is None else (args.size, args.size)
     scene, labels = board_scene(board, defects=defects, pixel_size_mm=args.pixel_size_mm,
                                 shape=shape, offset_mm=offset, rotate_deg=args.rotate_deg,
                                 seed=args.seed)
-    labels = dict(labels)
-    labels.setdefault("board_file", str(path))
     return scene, labels
 
 

@@ -375,6 +375,11 @@ class Board:
     components: tuple[Component, ...]
     source: str = ""
 
+    def outline_mm(self) -> np.ndarray:
+        """The board's rectangle in the BOARD frame, (4, 2) counter-clockwise from (0, 0)."""
+        w, h = self.size_mm
+        return np.array([[0.0, 0.0], [w, 0.0], [w, h], [0.0, h]])
+
     def joints(self) -> list[Joint]:
         """All joints, in file order (components, then pads)."""
         return [j for c in self.components for j in c.joints]

@@ -27,8 +27,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from ._geometry import apply2d, polygon_mask, world_to_pixel
-from ._reference import body_top_mm
+from ._geometry import apply2d, pixel_to_world, polygon_mask, world_to_pixel
+from ._reference import body_top_mm, lead_top_mm
 
 __all__ = ["FeaturePair", "feature_pairs", "fit_rigid2d"]
 
@@ -58,13 +58,15 @@ def presence_threshold_mm(comp) -> float:
     """
     if comp.kind == "chip":
         return float(comp.standoff_mm + 0.8 * comp.body_height_mm)
-    lead = comp.lead or {}
-    lead_top = float(lead.get("solder_thickness_mm", 0.0)) + float(lead.get("thickness_mm", 0.0))
-    return 0.5 * (body_top_mm(comp) + lead_top)
+    return 0.5 * (body_top_mm(comp) + lead_top_mm(comp))
 
 
-def body_blob(comp, height, reliable, T, p, *, search_mm: float) -> np.ndarray | None:
-    """Mask of the measured body of ``comp`` (holes filled), or None when not found."""
+def body_blob(comp, height, reliable, T, p, *, search_mm: float,
+              level: float = 0.0) -> np.ndarray | None:
+    """Mask of the measured body of ``comp`` (holes filled), or None when not found.
+
+    ``level``: the local board level, subtracted from ``height`` (only inside the
+    search window)."""
     import cv2
     from scipy.ndimage import binary_fill_holes
 
@@ -81,7 +83,7 @@ def body_blob(comp, height, reliable, T, p, *, search_mm: float) -> np.ndarray |
     window = polygon_mask(win_px - [c0, r0], (r1 - r0, c1 - c0))
     body_px = world_to_pixel(apply2d(T, comp.body_polygon_mm()), shape=shape, pixel_size_mm=p)
     body = polygon_mask(body_px - [c0, r0], (r1 - r0, c1 - c0))
-    cand = window & reliable[sub] & (height[sub] > presence_threshold_mm(comp))
+    cand = window & reliable[sub] & (height[sub] - level > presence_threshold_mm(comp))
     if not cand.any():
         return None
     # Close thin unreliable seams (e.g. where an end cap meets the body) before labelling.
@@ -106,11 +108,9 @@ def _body_pair(comp, height, reliable, T, p) -> FeaturePair | None:
     nominal = comp.body_length_mm * comp.body_width_mm
     if not 0.8 <= area / nominal <= 1.2:
         return None
-    # The blob must not touch the search window's edge (a neighbour merged in).
     rows, cols = np.nonzero(blob)
-    H = height.shape[0]
-    x = cols.mean() * p
-    y = (H - 1 - rows.mean()) * p
+    x, y = pixel_to_world(np.array([[cols.mean(), rows.mean()]]), shape=height.shape,
+                          pixel_size_mm=p)[0]
     return FeaturePair("body", comp.ref, (comp.x_mm, comp.y_mm), (float(x), float(y)),
                        weight=BODY_WEIGHT)
 
@@ -163,7 +163,7 @@ def _fiducial_pair(fid, aif_gray, T, p) -> FeaturePair | None:
         return None
     if float(np.sqrt(np.mean((np.hypot(ex[keep] - cx, ey[keep] - cy) - rad) ** 2))) > 0.75:
         return None
-    x, y = cx * p, (H - 1 - cy) * p
+    x, y = pixel_to_world(np.array([[cx, cy]]), shape=(H, W), pixel_size_mm=p)[0]
     return FeaturePair("fiducial", fid.id, (fid.x_mm, fid.y_mm), (float(x), float(y)),
                        weight=FIDUCIAL_WEIGHT)
 

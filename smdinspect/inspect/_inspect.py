@@ -155,8 +155,7 @@ def inspect_surface(surface, board, config: InspectConfig | None = None, *,
 def _outline_px(board, reg: RegistrationResult, shape, p) -> list[list[float]]:
     from ._geometry import world_to_pixel
 
-    w, h = board.size_mm
-    poly = apply2d(reg.transform, np.array([[0, 0], [w, 0], [w, h], [0, h]], float))
+    poly = apply2d(reg.transform, board.outline_mm())
     return world_to_pixel(poly, shape=shape, pixel_size_mm=p).round(2).tolist()
 
 

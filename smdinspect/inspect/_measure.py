@@ -80,8 +80,8 @@ import numpy as np
 
 from ._config import InspectConfig
 from ._features import body_blob
-from ._geometry import apply2d, polygon_mask, world_to_pixel
-from ._reference import body_top_mm
+from ._geometry import apply2d, pixel_to_world, polygon_mask, world_to_pixel
+from ._reference import body_top_mm, lead_top_mm
 
 __all__ = ["ComponentMeasurement", "JointMeasurement", "MeasureContext", "measure_board"]
 
@@ -182,9 +182,8 @@ class MeasureContext:
         return self.to_px(np.asarray(xy_board, np.float64).reshape(-1, 2))
 
     def px_to_board(self, cols, rows) -> np.ndarray:
-        H = self.shape[0]
-        world = np.column_stack([np.asarray(cols, np.float64) * self.p,
-                                 (H - 1 - np.asarray(rows, np.float64)) * self.p])
+        world = pixel_to_world(np.column_stack([cols, rows]), shape=self.shape,
+                               pixel_size_mm=self.p)
         return apply2d(np.linalg.inv(self.T), world)
 
 
@@ -225,24 +224,16 @@ def fiducial_chroma(board, T, chroma: np.ndarray | None, p: float) -> float:
     return c if abs(c) >= 0.08 else NAN
 
 
-def _dilate(mask: np.ndarray, radius_px: float) -> np.ndarray:
+def _morph(mask: np.ndarray, radius_px: float, *, grow: bool) -> np.ndarray:
+    """Dilate (``grow``) or erode a bool mask by a disk of ``radius_px``."""
     import cv2
 
     r = int(math.ceil(radius_px))
     if r <= 0:
         return mask
     k = cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (2 * r + 1, 2 * r + 1))
-    return cv2.dilate(mask.astype(np.uint8), k).astype(bool)
-
-
-def _erode(mask: np.ndarray, radius_px: float) -> np.ndarray:
-    import cv2
-
-    r = int(math.ceil(radius_px))
-    if r <= 0:
-        return mask
-    k = cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (2 * r + 1, 2 * r + 1))
-    return cv2.erode(mask.astype(np.uint8), k).astype(bool)
+    op = cv2.dilate if grow else cv2.erode
+    return op(mask.astype(np.uint8), k).astype(bool)
 
 
 def _rss(values: np.ndarray) -> float:
@@ -264,13 +255,19 @@ def footprints(board, ctx: MeasureContext, margin_px: float) -> dict[str, np.nda
             m |= ctx.mask(j.polygon_mm)
             if comp.kind == "gullwing":
                 m |= ctx.mask(comp.termination_polygon_mm(j.id))
-        out[comp.ref] = _dilate(m, margin_px)
+        out[comp.ref] = _morph(m, margin_px, grow=True)
     return out
 
 
 # --------------------------------------------------------------------------------------
 # A component's window: every pixel near it in component-local coordinates.
 # --------------------------------------------------------------------------------------
+
+
+def _half_extent(comp, direction) -> float:
+    """How far the body reaches from the component centre along a unit ``direction``."""
+    centred = comp.body_polygon_mm() - [comp.x_mm, comp.y_mm]
+    return float(np.abs(centred @ np.asarray(direction, np.float64)).max())
 
 
 def _solder_ceiling_mm(comp) -> float:
@@ -461,7 +458,7 @@ def _measure_chip(comp, joint, win: _Win, config: InspectConfig, level: float,
     n, n_rel = int(area.sum()), int(rel.sum())
     m.reliable_fraction = n_rel / n if n else 0.0
     visible = pad & ~((np.abs(win.lx) <= hl) & (np.abs(win.ly) <= hw))
-    m.bare_fraction = _bare_fraction(win, _erode(visible, 1))
+    m.bare_fraction = _bare_fraction(win, _morph(visible, 1, grow=False))
     # End cap: the termination's top, away from the body edge.
     t = comp.termination_length_mm
     cap = (u >= hl - t + mg) & (u <= hl - mg) & (np.abs(v_body) <= hw - mg) & win.rel_all
@@ -501,8 +498,8 @@ def _measure_gullwing(comp, joint, win: _Win, config: InspectConfig, level: floa
     toe = float(lead["span_mm"]) / 2.0
     heel = toe - float(lead["foot_length_mm"])
     b2 = float(lead["width_mm"]) / 2.0
-    g_t = float(lead.get("solder_thickness_mm", 0.0)) + float(lead["thickness_mm"])
-    half_body = float(np.abs((comp.body_polygon_mm() - [comp.x_mm, comp.y_mm]) @ np.asarray(joint.outward)).max())
+    g_t = lead_top_mm(comp)
+    half_body = _half_extent(comp, joint.outward)
     mg = config.body_margin_mm
     foot = (u >= heel) & (u <= toe - p) & (np.abs(v) <= b2 - p)
     lead_grown = (u >= half_body - p) & (u <= toe + p) & (np.abs(v) <= b2 + p)
@@ -514,7 +511,8 @@ def _measure_gullwing(comp, joint, win: _Win, config: InspectConfig, level: floa
     rel = region & win.rel
     n, n_rel = int(region.sum()), int(rel.sum())
     m.reliable_fraction = n_rel / n if n else 0.0
-    m.bare_fraction = _bare_fraction(win, _erode(pad & ~lead_grown & (u >= half_body), 1))
+    m.bare_fraction = _bare_fraction(win, _morph(pad & ~lead_grown & (u >= half_body), 1,
+                                                 grow=False))
     fr = foot & win.rel
     m.foot_reliable_fraction = float(fr.sum() / max(foot.sum(), 1))
     if fr.sum() >= 5:
@@ -551,16 +549,13 @@ def _measure_gullwing(comp, joint, win: _Win, config: InspectConfig, level: floa
 # --------------------------------------------------------------------------------------
 
 
-def _path_level(h: np.ndarray, valid: np.ndarray, axis: int, config: InspectConfig):
-    """Best covered level over the paths of a (n_paths × n_along) grid."""
+def _path_level(h: np.ndarray, valid: np.ndarray, config: InspectConfig):
+    """Best covered level over the paths (rows) of a (n_paths × n_along) grid."""
     best_z, best_f = NAN, NAN
-    hh = h if axis == 1 else h.T
-    vv = valid if axis == 1 else valid.T
-    for k in range(hh.shape[0]):
-        ok = vv[k]
+    for hk, ok in zip(h, valid):
         if ok.sum() < max(3, 0.5 * ok.size):
             continue
-        vals = hh[k][ok]
+        vals = hk[ok]
         z = float(np.quantile(vals, 1.0 - config.bridge_min_fraction))
         if not np.isfinite(best_z) or z > best_z:
             best_z, best_f = z, float(np.mean(vals > config.bridge_height_mm))
@@ -604,17 +599,17 @@ def _measure_gaps(comp, win: _Win, config: InspectConfig, joints: dict[str, Join
         groups.setdefault(key, []).append(j)
     lead = comp.lead or {}
     b2 = float(lead.get("width_mm", 0.0)) / 2.0
+    cc = np.array([comp.x_mm, comp.y_mm])
+    # Along the feet only: the knees rise to the mould exit and blur sideways.
+    heel = float(lead.get("span_mm", 0.0)) / 2.0 - float(lead.get("foot_length_mm", 0.0))
     for key, js in groups.items():
         out_b = np.array(key, np.float64)
         out_b /= np.linalg.norm(out_b)
         acr_b = np.array([-out_b[1], out_b[0]])
         js = sorted(js, key=lambda j: float(np.dot(j.center_mm, acr_b)))
-        half_body = float(np.abs((comp.body_polygon_mm() - [comp.x_mm, comp.y_mm]) @ out_b).max())
+        half_body = _half_extent(comp, out_b)
         for a, b in zip(js[:-1], js[1:]):
             pa, pb = np.asarray(a.polygon_mm), np.asarray(b.polygon_mm)
-            cc = np.array([comp.x_mm, comp.y_mm])
-            # Along the feet only: the knees rise to the mould exit and blur sideways.
-            heel = float(lead.get("span_mm", 0.0)) / 2.0 - float(lead.get("foot_length_mm", 0.0))
             u0 = max(float(((pa - cc) @ out_b).min()), float(((pb - cc) @ out_b).min()),
                      half_body + mg, heel + mg)
             u1 = min(float(((pa - cc) @ out_b).max()), float(((pb - cc) @ out_b).max()))
@@ -651,7 +646,7 @@ def _sample_board(win: _Win, pts: np.ndarray, exclude: np.ndarray, config: Inspe
     c, r = np.clip(c, 0, W - 1), np.clip(r, 0, H - 1)
     valid = (inside & win.rel[r, c] & ~exclude[r, c]).reshape(shp)
     h = np.where(valid, win.h[r, c].reshape(shp), np.nan)
-    return _path_level(h, valid, 1, config)
+    return _path_level(h, valid, config)
 
 
 # --------------------------------------------------------------------------------------
@@ -677,14 +672,13 @@ def _measure_body(comp, ctx: MeasureContext, win: _Win, level: float,
     rel = inner & win.rel_all
     n_rel = int(rel.sum())
     frac = float(n_rel / n) if n else 0.0
-    h = ctx.height - level
     radius = max(config.shift_tol_mm, config.shift_tol_fraction * comp.body_width_mm) * 2 + 0.2
-    blob = body_blob(comp, h, ctx.reliable, ctx.T, p, search_mm=radius)
+    blob = body_blob(comp, ctx.height, ctx.reliable, ctx.T, p, search_mm=radius, level=level)
     if blob is None:
         blob = np.zeros(ctx.shape, bool)
     br = blob & ctx.reliable
     present = float(min(1.0, br.sum() / n_rel)) if n_rel else 0.0
-    body_h = float(np.median(h[br])) if br.any() else NAN
+    body_h = float(np.median(ctx.height[br] - level)) if br.any() else NAN
     offset = (NAN, NAN)
     if blob.sum() >= 10:
         rows, cols = np.nonzero(blob)

@@ -19,7 +19,7 @@ import numpy as np
 
 from ._geometry import apply2d, polygon_mask, world_to_pixel
 
-__all__ = ["Prism", "body_top_mm", "reference_mesh", "reference_points", "reference_prisms", "render_reference"]
+__all__ = ["Prism", "body_top_mm", "lead_top_mm", "reference_mesh", "reference_points", "reference_prisms", "render_reference"]
 
 log = logging.getLogger(__name__)
 
@@ -57,6 +57,13 @@ def body_top_mm(comp) -> float:
     return float(comp.standoff_mm + comp.body_height_mm)
 
 
+def lead_top_mm(comp) -> float:
+    """Nominal top of a gull-wing lead's foot above the board: solder layer under the
+    foot + lead thickness (mm); 0 for parts without leads."""
+    lead = comp.lead or {}
+    return float(lead.get("solder_thickness_mm", 0.0)) + float(lead.get("thickness_mm", 0.0))
+
+
 def _ramp(polygon: np.ndarray, p0: np.ndarray, direction: np.ndarray, z0: float,
           z1: float, length: float) -> tuple[float, float, float]:
     """Plane coefficients of a ramp: ``z0`` at ``p0`` falling to ``z1`` after ``length``
@@ -81,8 +88,7 @@ def reference_prisms(board, *, fillets: bool = True, slab: bool = False) -> list
     """
     prisms: list[Prism] = []
     if slab:
-        w, h = board.size_mm
-        prisms.append(Prism("board", "", np.array([[0, 0], [w, 0], [w, h], [0, h]], float),
+        prisms.append(Prism("board", "", board.outline_mm(),
                             (0.0, 0.0, 0.0), -float(board.thickness_mm)))
     for comp in board.components:
         top = body_top_mm(comp)
@@ -184,8 +190,7 @@ def render_reference(
     off = np.asarray(origin_mm, np.float64)
     height = np.zeros(shape, np.float32)
     if board is not None:
-        w, h = board.size_mm
-        outline = apply2d(T, np.array([[0, 0], [w, 0], [w, h], [0, h]], float)) - off
+        outline = apply2d(T, board.outline_mm()) - off
         mask = polygon_mask(world_to_pixel(outline, shape=shape, pixel_size_mm=p), shape)
     else:
         mask = np.zeros(shape, bool)

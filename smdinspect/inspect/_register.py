@@ -373,6 +373,7 @@ def register_board(
         n_ang = int(math.ceil(cfg.max_rotation_deg / step))
         angles = np.arange(-n_ang, n_ang + 1) * step
         T, pivot, margin = T0, centre_img, cfg.max_offset_mm
+        score = -1.0  # stays -1 when the first level finds nothing
         levels = []
         while True:
             lv = _level(height, reliable, p, k, clip)
@@ -392,8 +393,6 @@ def register_board(
             step /= 4.0
             angles = np.arange(-2, 3) * step
             pivot = apply2d(T, centre_board[None])[0]
-        if not levels or levels[0]["score"] <= -1:
-            score = -1.0
         meta["coarse"] = {"levels": levels, "seconds": round(time.perf_counter() - t_start, 3)}
         meta["coarse_transform"] = T.copy()
         log.debug("coarse registration: score %.3f, rotation %.3f deg", score, decompose2d(T)[0])
@@ -465,16 +464,14 @@ def register_board(
 
 def _moved_mm(T0: np.ndarray, T1: np.ndarray, board) -> float:
     """Largest displacement of the board's corners between two placements (mm)."""
-    w, h = board.size_mm
-    c = np.array([[0, 0], [w, 0], [w, h], [0, h]], float)
+    c = board.outline_mm()
     return float(np.max(np.hypot(*(apply2d(T1, c) - apply2d(T0, c)).T)))
 
 
 def _measured_points(height, reliable, p, board, T, *, max_points, seed):
     """Reliable raised points (WORLD frame) inside the board outline under ``T``."""
     H, W = height.shape
-    w, h = board.size_mm
-    outline = apply2d(T, np.array([[0, 0], [w, 0], [w, h], [0, h]], float))
+    outline = apply2d(T, board.outline_mm())
     inside = polygon_mask(world_to_pixel(outline, shape=(H, W), pixel_size_mm=p), (H, W))
     sel = reliable & inside & (height > RAISED_MM)
     rows, cols = np.nonzero(sel)

@@ -14,7 +14,7 @@ base64 PNGs in the page and the table sorts with a few lines of inline JavaScrip
                 "size_mm": [9.5, 9.5]},
       "measurement": {"shape": [H, W], "pixel_size_mm": 0.02, "coverage": 0.93,
                       "step_mm": 0.05, "source": "stacks/b1"},
-      "registration": {"method": "coarse+icp", "converged": true, "reason": "",
+      "registration": {"method": "coarse+features", "converged": true, "reason": "",
                        "transform": [[c, -s, tx], [s, c, ty], [0, 0, 1]],   # WORLD = T·BOARD
                        "rotation_deg": 2.5, "translation_mm": [tx, ty],
                        "offset_mm": [dx, dy],      # board centre − image centre
@@ -35,7 +35,9 @@ base64 PNGs in the page and the table sorts with a few lines of inline JavaScrip
                                "mean_uncertainty_mm", "volume_mm3",
                                "volume_uncertainty_mm3", "area_mm2",
                                "area_uncertainty_mm2", "reliable_fraction", "n_pixels",
-                               "lead_height_mm", "gap_height_mm"},
+                               "max_method", "lead_height_mm", "foot_height_mm",
+                               "side_height_mm", "cap_excess_mm", "fillet_reach",
+                               "gap_height_mm", "bare_fraction"},
                   "expected": {"nominal_height_mm", "min_height_mm", "max_height_mm"},
                   "verdict": "ok", "reason": "..."}, ...]
     }
@@ -359,12 +361,13 @@ def report_html(result: InspectionResult, *, source: str | None = None, max_side
     legend = " ".join(f"<span class='chip' style='background:rgb{COLOURS[v]}'></span>{e(v)}"
                       f" ({counts[v]})" for v in COLOURS)
     parts.append(f"<p>{legend}</p>")
-    if surface is not None and result.height_above_mm is not None:
+    pictures = surface is not None and result.height_above_mm is not None
+    if pictures:
+        aif_full = _aif_rgb(surface)
+        hfull, lo, hi = _height_rgb(result.height_above_mm, np.asarray(surface.reliable, bool))
         scale = _scale_for(result.shape, max_side)
-        aif = _draw_outlines(_resize(_aif_rgb(surface), scale), result, scale, 2)
-        reliable = np.asarray(surface.reliable, bool)
-        hrgb, lo, hi = _height_rgb(result.height_above_mm, reliable)
-        hpic = _draw_outlines(_resize(hrgb, scale), result, scale, 1)
+        aif = _draw_outlines(_resize(aif_full, scale), result, scale, 2)
+        hpic = _draw_outlines(_resize(hfull, scale), result, scale, 1)
         parts.append("<div class='figs'>"
                      f"<figure><img alt='all-in-focus image' src='data:image/png;base64,{_png_b64(aif)}'>"
                      "<figcaption>All-in-focus image; pads outlined in their verdict's colour.</figcaption></figure>"
@@ -396,9 +399,7 @@ def report_html(result: InspectionResult, *, source: str | None = None, max_side
     parts.append("</tbody></table>")
     # Crops of the failing joints.
     bad = [j for j in result.joints if j.is_defect and j.polygon_px is not None]
-    if bad and surface is not None:
-        aif_full = _aif_rgb(surface)
-        hfull, _, _ = _height_rgb(result.height_above_mm, np.asarray(surface.reliable, bool))
+    if bad and pictures:
         pad_px = int(round(0.6 / result.pixel_size_mm))
         parts.append("<h2>Failing joints</h2><div class='crops'>")
         for j in bad:

@@ -49,6 +49,7 @@ import math
 
 from ._config import InspectConfig, Verdict
 from ._measure import ComponentMeasurement, JointMeasurement
+from ._reference import lead_top_mm
 from ._result import ComponentResult, JointResult
 
 __all__ = ["judge_component", "judge_joint"]
@@ -121,9 +122,8 @@ def _joint_rule(joint, comp, m: JointMeasurement, comp_result: ComponentResult,
         return comp_result.verdict, f"{comp.ref}: {comp_result.reason}"
     if comp.kind == "gullwing" and math.isfinite(m.lead_mm) \
             and m.foot_reliable_fraction >= config.min_reliable_fraction:
-        lead = comp.lead or {}
-        nominal = float(lead.get("solder_thickness_mm", 0.0)) + float(lead.get("thickness_mm", 0.0))
-        underside = m.lead_mm - float(lead.get("thickness_mm", 0.0))
+        nominal = lead_top_mm(comp)
+        underside = m.lead_mm - float((comp.lead or {}).get("thickness_mm", 0.0))
         beside = m.side_mm if math.isfinite(m.side_mm) else 0.0
         if m.lead_mm - nominal > config.lifted_lead_gap_mm and beside < underside:
             return Verdict.LIFTED_LEAD, (f"lead foot at {_um(m.lead_mm)} (nominal {_um(nominal)}, "
@@ -163,10 +163,4 @@ def _joint_rule(joint, comp, m: JointMeasurement, comp_result: ComponentResult,
     return Verdict.OK, (f"max solder height {_um(h)}{pm}{how} within "
                         f"[{_um(joint.min_height_mm)}, {_um(joint.max_height_mm)}]")
 
-
-def worst(verdicts) -> Verdict:
-    """The most severe of several verdicts (defects before unreliable before ok)."""
-    order = [v for v in Verdict if v.is_defect] + [Verdict.UNRELIABLE, Verdict.OK]
-    vs = list(verdicts)
-    return min(vs, key=order.index) if vs else Verdict.OK
 

@@ -338,8 +338,6 @@ def render_optical(
     (H, W) or (H, W, 3) float32
         Relative irradiance (1 = white matte surface in focus), grey or RGB like the albedo.
     """
-    import cv2
-
     _check_scene_optics(scene, optics)
     z = _check_number(z_mm, "z_mm")
     light = Lighting() if lighting is None else lighting
