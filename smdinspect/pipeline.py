@@ -96,7 +96,7 @@ def inspection_focus_config():
     """
     from .sff import FocusConfig
 
-    return FocusConfig(window_px=5)
+    return FocusConfig(window_px=5, halo_ratio=8.0)
 
 
 def inspect_stack(

@@ -81,7 +81,7 @@ def inspect_surface(surface, board, config: InspectConfig | None = None, *,
     H, W = height.shape
     if reliable.mean() < 0.05:
         raise BoardNotLocatedError(
-            f"only {reliable.mean():.1%} of the surface is reliable; nothing to locate the "
+            f"board not located: only {reliable.mean():.1%} of the surface is reliable; nothing to locate the "
             "board on (is the stack in focus range and textured?)")
     rows, cols = np.indices(height.shape)
     x = cols * p

@@ -4,7 +4,7 @@
 load them when called.
 """
 
-from ._align import FrameAligner
+from ._align import Alignment, estimate_alignment
 from ._config import FitMethod, FocusConfig
 from ._confidence import confidence_map
 from ._depth import PeakFit, PeakTracker, fit_peaks
@@ -22,14 +22,15 @@ from ._surface import Surface, pixel_to_xy_mm, xy_mm_to_pixel
 
 __all__ = [
     "OPERATORS",
+    "Alignment",
     "FitMethod",
     "FocusConfig",
     "FocusOperator",
-    "FrameAligner",
     "PeakFit",
     "PeakTracker",
     "Surface",
     "confidence_map",
+    "estimate_alignment",
     "fit_peaks",
     "focus_measure",
     "height_field_mesh",

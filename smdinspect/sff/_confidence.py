@@ -39,12 +39,12 @@ import numpy as np
 
 from ._depth import PeakFit
 
-__all__ = ["confidence_map", "depth_edge_mask"]
+__all__ = ["confidence_map", "depth_edge_mask", "halo_mask"]
 
 R_LOW_DB, R_HIGH_DB = 14.0, 26.0
 WIDTH_OK, WIDTH_BAD = 2.0, 4.0
 AMBIG_OK, AMBIG_BAD = 0.35, 0.70
-PROM_BAD, PROM_OK = 0.15, 0.40
+SNR_BAD, SNR_OK = 1.2, 2.2
 
 
 def _ramp(x: np.ndarray, lo: float, hi: float) -> np.ndarray:
@@ -53,16 +53,33 @@ def _ramp(x: np.ndarray, lo: float, hi: float) -> np.ndarray:
     return t * t * (3.0 - 2.0 * t)
 
 
-def confidence_map(fit: PeakFit) -> np.ndarray:
+def confidence_map(fit: PeakFit, *, window_px: int = 9) -> np.ndarray:
     """Confidence of every pixel's height.
 
     Parameters
     ----------
     fit : PeakFit
+    window_px : int
+        The focus window the fit's curves were measured with (scales the noise test).
 
     Returns
     -------
     confidence : (H, W) float32 in [0, 1]
+    """
+    cues = confidence_cues(fit, window_px=window_px)
+    conf = np.prod(np.stack(list(cues.values())), axis=0).astype(np.float32)
+    conf[~fit.interior] = 0.0
+    return conf
+
+
+def confidence_cues(fit: PeakFit, *, window_px: int = 9) -> dict[str, np.ndarray]:
+    """The four cues of :func:`confidence_map`, each (H, W) in [0, 1].
+
+    The prominence test is a noise test: on a textureless pixel the focus curve is the
+    sensor noise's focus measure, whose frame-to-frame spread relative to its mean falls
+    as 1/√N with the N = window_px² pixels summed, so the peak-to-floor ratio A/b it can
+    fake shrinks as 1/window_px. The ramp is on (A/b)·window_px/9: at the default 9-px
+    window from A/b = 1.2 (0) to 2.2 (1); a 5-px window needs 1.8× more.
     """
     r = np.nan_to_num(fit.reliability_db, nan=0.0)
     c_r = _ramp(r, R_LOW_DB, R_HIGH_DB)
@@ -73,11 +90,11 @@ def confidence_map(fit: PeakFit) -> np.ndarray:
         c_w = _ramp(np.nan_to_num(sigma / typical, nan=np.inf), WIDTH_BAD, WIDTH_OK)
     else:
         c_w = np.ones_like(c_r)
-    c_a = _ramp(fit.ambiguity, AMBIG_BAD, AMBIG_OK)
-    c_p = _ramp(fit.prominence, PROM_BAD, PROM_OK)
-    conf = (c_r * c_w * c_a * c_p).astype(np.float32)
-    conf[~fit.interior] = 0.0
-    return conf
+    with np.errstate(divide="ignore", invalid="ignore"):
+        snr = np.nan_to_num(fit.f_best / fit.floor, nan=0.0, posinf=1e6) * (window_px / 9.0)
+    return {"reliability": c_r, "width": c_w,
+            "ambiguity": _ramp(fit.ambiguity, AMBIG_BAD, AMBIG_OK),
+            "prominence": _ramp(snr, SNR_BAD, SNR_OK)}
 
 
 def depth_edge_mask(height_mm: np.ndarray, reliable: np.ndarray, *, jump_mm: float,
@@ -108,3 +125,55 @@ def depth_edge_mask(height_mm: np.ndarray, reliable: np.ndarray, *, jump_mm: flo
                                              (2 * radius_px + 1, 2 * radius_px + 1))
             level = cv2.dilate(level, disk)
         return np.isfinite(level) & (h > level)
+
+
+def halo_mask(amplitude: np.ndarray, frame_pos: np.ndarray, candidate: np.ndarray, *,
+              radius_px: int, min_frames: float = 2.0, ratio: float = 4.0) -> np.ndarray:
+    """(H, W) bool: peaks that a much stronger neighbour at another depth can explain.
+
+    A bright, sharp edge at depth z_q spreads its contrast over a disc that grows with
+    defocus; in the weak texture next to it the focus curve then peaks at a frame where
+    the *edge* is out of focus: a second, wrong peak (a halo). Such a pixel's peak
+    amplitude A_p is small against the edge's A_q. A pixel is flagged when some
+    ``candidate`` neighbour q within ``radius_px`` has its peak at least ``min_frames``
+    frames away and ``A_q > ratio · A_p``. Computed on a grid reduced so that the
+    radius is about 8 cells, one max-filter per frame bin: cheap at any frame count.
+
+    Parameters
+    ----------
+    amplitude : (H, W) float32
+        Highest sampled focus above the curve's floor (``PeakFit.f_best``; the fitted
+        amplitude of a sharp peak between two frames is too noisy for this).
+    frame_pos : (H, W) float
+        Peak position in frames (fractional).
+    candidate : (H, W) bool
+        Pixels that may explain others' peaks (those with a trustworthy own peak).
+    """
+    import cv2
+
+    h, w = amplitude.shape
+    s = max(1, radius_px // 8)
+    hs, ws = -(-h // s), -(-w // s)
+    rs = max(1, -(-radius_px // s))
+    disk = cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (2 * rs + 1, 2 * rs + 1))
+    bins = np.clip(np.round(frame_pos), 0, None).astype(np.int32)
+    bins[~np.isfinite(frame_pos)] = 0
+    nb = int(bins.max()) + 1
+    gap = max(1, int(np.ceil(min_frames)))
+    pad = np.zeros((hs * s, ws * s), np.float32)
+    strong = np.where(candidate, amplitude, 0).astype(np.float32)
+    small = np.zeros((nb, hs, ws), np.float32)
+    for b in range(nb):
+        sel = bins == b
+        if not (sel & candidate).any():
+            continue
+        pad[:h, :w] = np.where(sel, strong, 0)
+        small[b] = cv2.dilate(pad.reshape(hs, s, ws, s).max(axis=(1, 3)), disk)
+    below = np.maximum.accumulate(small, axis=0)  # max over bins <= b
+    above = np.maximum.accumulate(small[::-1], axis=0)[::-1]  # max over bins >= b
+    rows = (np.arange(h) // s)[:, None]
+    cols = (np.arange(w) // s)[None, :]
+    lo, hi = bins - gap, bins + gap
+    dom = np.where(lo >= 0, below[np.clip(lo, 0, nb - 1), rows, cols], 0)
+    dom = np.maximum(dom, np.where(hi < nb, above[np.clip(hi, 0, nb - 1), rows, cols], 0))
+    return dom > ratio * amplitude

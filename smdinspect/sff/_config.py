@@ -14,6 +14,10 @@ __all__ = ["FitMethod", "FocusConfig"]
 class FitMethod(str, Enum):
     """How the focus curve around its peak is modelled."""
 
+    #: Weighted least squares of the power-law peak F = b + A/(1 + (z − z̄)²/γ²)^p over
+    #: ±``fit_half_width`` frames (p from the operator, 2 for squared ones): the shape a
+    #: defocus-blurred natural texture gives. The default.
+    POWER = "power"
     #: Nayar's 3-point Gaussian interpolation through the peak and its two neighbours.
     GAUSS3 = "gauss3"
     #: Weighted least-squares Gaussian (parabola in log F) over ±``fit_half_width`` frames.
@@ -37,7 +41,8 @@ class FocusConfig:
         Nayar's threshold: per-pixel responses below it count as 0 before the window
         sum. Only for operators that sum a response (``FocusOperator(op).uses_threshold``).
     fit : FitMethod or str
-        ``"gauss3"`` (default), ``"lsq"`` or ``"argmax"``.
+        ``"power"`` (default), ``"gauss3"``, ``"lsq"`` or ``"argmax"``; every fit is made
+        on F − b, b the curve's floor (its lowest value over the stack).
     fit_half_width : int
         k: the focus curve is kept over ±k frames around its peak; the reliability R and
         the ``lsq`` fit use these 2k+1 samples. Memory holds 2k+1 focus frames at most.
@@ -48,6 +53,10 @@ class FocusConfig:
         Pixels within half a window of a height step of more than this many frame steps
         (within 5 × 5 reliable pixels) are unreliable: a window straddling a step takes
         the sharper, higher side's height. 0 turns the check off. Default 3.
+    halo_ratio : float
+        A pixel whose focus peak is this many times weaker than that of a neighbour
+        (within a window and 2 px) peaking at least two frames away is unreliable: its peak is
+        the defocused neighbour's blur (a halo). 0 turns the check off. Default 4.
     align : bool
         Register every frame to the middle frame (scale, rotation, translation) before
         measuring focus; needed for ordinary (non-telecentric) lenses.
@@ -58,10 +67,11 @@ class FocusConfig:
     operator: str = "sml"
     window_px: int = 9
     threshold: float = 0.0
-    fit: FitMethod = FitMethod.GAUSS3
+    fit: FitMethod = FitMethod.POWER
     fit_half_width: int = 3
     min_confidence: float = 0.5
     edge_jump_steps: float = 3.0
+    halo_ratio: float = 4.0
     align: bool = False
     workers: int = 2
 
@@ -92,6 +102,9 @@ class FocusConfig:
             raise InputError(f"min_confidence must be in [0, 1]; got {self.min_confidence!r}")
         if not (isinstance(self.edge_jump_steps, (int, float)) and self.edge_jump_steps >= 0):
             raise InputError(f"edge_jump_steps must be >= 0; got {self.edge_jump_steps!r}")
+        if not (isinstance(self.halo_ratio, (int, float)) and math.isfinite(self.halo_ratio)
+                and (self.halo_ratio == 0 or self.halo_ratio >= 1)):
+            raise InputError(f"halo_ratio must be 0 (off) or >= 1; got {self.halo_ratio!r}")
         if not isinstance(self.workers, int) or self.workers < 1:
             raise InputError(f"workers must be an integer >= 1; got {self.workers!r}")
 

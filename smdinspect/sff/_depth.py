@@ -26,6 +26,10 @@ from ._config import FitMethod
 __all__ = ["PeakFit", "PeakTracker", "fit_peaks"]
 
 _TINY = np.float32(1e-12)
+#: Samples beyond ±1 frame join the fit while above this fraction of the peak.
+SUPPORT_FRACTION = 0.2
+#: Reliability (dB) reported for a peak fitted exactly through its 3 samples.
+R_EXACT_DB = 60.0
 
 
 class PeakTracker:
@@ -54,6 +58,8 @@ class PeakTracker:
         self.before = np.zeros(shape, np.float32)
         # max of F over frames <= n - 2k - 1 (the frames that have left the ring)
         self.lagmax = np.zeros(shape, np.float32)
+        # lowest focus over all frames: the curve's floor (defocused texture + noise)
+        self.floor = np.full(shape, np.inf, np.float32)
         # window[j] holds F at frame best_idx - k + j (NaN where outside the stack)
         self.window = np.full((2 * k + 1, *shape), np.nan, np.float32)
         self.ring: list[np.ndarray | None] = [None] * (2 * k + 1)
@@ -74,6 +80,7 @@ class PeakTracker:
         mask = better.view(np.uint8)
         # cv2.copyTo with a mask is branch-free; numpy's where= is slow on noisy masks
         np.maximum(self.best, focus, out=self.best)
+        np.minimum(self.floor, focus, out=self.floor)
         self._frame_no.fill(n)
         cv2.copyTo(self._frame_no, mask, self.best_idx)
         far = np.less(self.best_idx, n - k, out=self._far)
@@ -122,18 +129,26 @@ class PeakFit:
 
     height_mm: np.ndarray  # float32, interpolated peak position
     coarse_mm: np.ndarray  # float32, z of the frame of maximum focus
-    f_peak: np.ndarray  # float32
-    sigma_mm: np.ndarray  # float32, NaN where the fit is inverted
-    reliability_db: np.ndarray  # float32
-    ambiguity: np.ndarray  # float32 in [0, 1]: excess focus away from the peak / peak
-    prominence: np.ndarray  # float32 in [0, 1]: 1 - (lowest focus within ±k frames) / peak
+    f_peak: np.ndarray  # float32, fitted peak height above the floor (the amplitude A)
+    floor: np.ndarray  # float32, lowest focus of the curve (defocused texture + noise)
+    f_best: np.ndarray  # float32, highest sampled focus above the floor
+    sigma_mm: np.ndarray  # float32, fitted width σ_F; NaN where the fit is inverted
+    reliability_db: np.ndarray  # float32, Pertuz's R of the fit over ±k frames
+    ambiguity: np.ndarray  # float32 in [0, 1]: excess focus away from the peak / A
+    prominence: np.ndarray  # float32 in [0, 1]: A / (A + floor)
     interior: np.ndarray  # bool: peak not on the first/last frame and fit not inverted
     best_idx: np.ndarray  # int16
 
 
 def fit_peaks(tracker: PeakTracker, z_mm: np.ndarray, *, method: FitMethod,
-              workers: int = 1) -> PeakFit:
+              power: float = 2.0, workers: int = 1) -> PeakFit:
     """Fit the Gaussian focus-curve model to the tracked windows.
+
+    The model is F(z) = b + A·exp(−(z − z̄)²/(2σ_F²)): a Gaussian peak on the curve's
+    floor b (the focus measure of fully defocused texture plus noise, tracked as the
+    lowest focus over all frames). Without b the tails of a narrow peak sink into the
+    floor, the fit pulls every peak towards its frame and heights terrace at whole
+    frames whenever the step is coarse against the depth of field.
 
     Parameters
     ----------
@@ -142,25 +157,28 @@ def fit_peaks(tracker: PeakTracker, z_mm: np.ndarray, *, method: FitMethod,
     z_mm : (n_frames,) float64
         Ascending focused-plane heights of the frames.
     method : FitMethod
+        ``lsq``: ln(F − b) = l0 + β·u + c·u² by least squares over the 2k+1 samples,
+        weighted by (F − b)² (Guo's weighting: samples near the floor carry no weight).
+        ``gauss3``: the same parabola through the peak and its two neighbours (Nayar's
+        3-point Gaussian interpolation, on F − b). ``argmax``: the peak frame only.
     workers : int
         Threads; the rows are split into this many blocks (numpy releases the GIL).
     """
     h = tracker.shape[0]
+    alternative = tracker.alternative
+    args = (tracker.best_idx, tracker.window, alternative, tracker.best, tracker.floor)
     if workers <= 1 or h < 64:
-        return _fit_block(tracker.best_idx, tracker.window, tracker.alternative, tracker.best,
-                          z_mm, k=tracker.k, method=method)
+        return _fit_block(*args, z_mm, k=tracker.k, method=method, power=power)
     from concurrent.futures import ThreadPoolExecutor
 
-    alternative = tracker.alternative
     edges = np.linspace(0, h, workers + 1).astype(int)
-    # Each thread writes its rows straight into the full-size results (no concatenation
-    # afterwards: that copy alone cost ~10 % of a 40-frame 1024² reconstruction).
+    # Each thread writes its rows straight into the full-size results (no concatenation).
     dtypes = {"interior": bool, "best_idx": np.int16}
     out = {f: np.empty(tracker.shape, dtypes.get(f, np.float32)) for f in PeakFit.__dataclass_fields__}
 
     def run(r0: int, r1: int) -> None:
-        part = _fit_block(tracker.best_idx[r0:r1], tracker.window[:, r0:r1], alternative[r0:r1],
-                          tracker.best[r0:r1], z_mm, k=tracker.k, method=method)
+        part = _fit_block(*(a[:, r0:r1] if a.ndim == 3 else a[r0:r1] for a in args), z_mm,
+                          k=tracker.k, method=method, power=power)
         for f, a in out.items():
             a[r0:r1] = getattr(part, f)
 
@@ -169,75 +187,106 @@ def fit_peaks(tracker: PeakTracker, z_mm: np.ndarray, *, method: FitMethod,
     return PeakFit(**out)
 
 
-def _fit_block(best_idx, window, alternative, best, z_mm, *, k: int, method: FitMethod) -> PeakFit:
+def _fit_block(best_idx, window, alternative, best, floor, z_mm, *, k: int,
+               method: FitMethod, power: float) -> PeakFit:
     """:func:`fit_peaks` on one block of rows."""
     z_mm = np.asarray(z_mm, dtype=np.float64)
     n = len(z_mm)
+    step = float(np.median(np.diff(z_mm))) if n > 1 else 1.0
     kb = best_idx
-    z_pad = np.concatenate([np.full(k, np.nan), z_mm, np.full(k, np.nan)])
+    # sample positions relative to the peak frame, in units of the median step
+    z_pad = np.concatenate([np.full(k, np.nan), z_mm, np.full(k, np.nan)]) / step
     z0 = z_mm[kb]
-    coarse = z0.astype(np.float32)
+    zs0 = z0 / step
 
     def u_at(j: int) -> np.ndarray:
-        """(H, W) float32: z of window sample j relative to the best frame (NaN outside)."""
-        return (np.take(z_pad, kb + j) - z0).astype(np.float32)
+        return (np.take(z_pad, kb + j) - zs0).astype(np.float32)
 
-    w = window
-    f0, fm, fp = w[k], w[k - 1], w[k + 1]
-    um, up = u_at(k - 1), u_at(k + 1)
-    on_edge = (kb == 0) | (kb == n - 1) | ~np.isfinite(fm) | ~np.isfinite(fp)
-
+    floor = np.where(np.isfinite(floor), floor, 0).astype(np.float32)
+    y = [np.maximum(window[j] - floor, 0) for j in range(2 * k + 1)]  # NaN stays NaN
+    y0 = y[k]
+    on_edge = (kb == 0) | (kb == n - 1) | ~np.isfinite(y[k - 1]) | ~np.isfinite(y[k + 1])
+    gauss = method in (FitMethod.GAUSS3, FitMethod.LSQ)
     with np.errstate(divide="ignore", invalid="ignore", over="ignore"):
-        if method == FitMethod.LSQ:
-            u = np.stack([u_at(j) for j in range(2 * k + 1)])
-            c, beta, l0 = _lsq_log_parabola(u, w)
-            del u
+        tiny = np.maximum(y0 * 1e-4, _TINY)
+        if gauss:  # q = −ln y is a parabola for a Gaussian peak
+            to_q = lambda v: -np.log(np.maximum(v, tiny))  # noqa: E731
+        else:  # q = y^(−1/p) is a parabola for A / (1 + (u − μ)²/γ²)^p
+            to_q = lambda v: np.maximum(v, tiny) ** np.float32(-1.0 / power)  # noqa: E731
+        # The peak's support: the samples, contiguous with the peak, above
+        # SUPPORT_FRACTION of it (always ±1 frame). A real focus curve is a narrow peak
+        # on a broad pedestal (coarse texture defocuses slowly): samples on the pedestal
+        # would pull the fit, and at coarse steps only ±1 frame is on the peak.
+        support = [None] * (2 * k + 1)
+        support[k] = np.isfinite(y0)
+        for j in list(range(k - 1, -1, -1)) + list(range(k + 1, 2 * k + 1)):
+            inner = support[j + 1] if j < k else support[j - 1]
+            support[j] = inner & ((y[j] > SUPPORT_FRACTION * y0) | (abs(j - k) == 1))
+        if method == FitMethod.GAUSS3:
+            for j in range(2 * k + 1):
+                if abs(j - k) > 1:
+                    support[j] = np.zeros_like(support[k])
+            um, up = u_at(k - 1), u_at(k + 1)
+            qm, q0, qp = to_q(y[k - 1]), to_q(y0), to_q(y[k + 1])
+            c = ((qp - q0) / up - (q0 - qm) / (-um)) / (up - um)
+            b = (q0 - qm) / (-um) - c * um
+            a = q0
         else:
-            lm, l0, lp = (np.log(np.maximum(x, _TINY)) for x in (fm, f0, fp))
-            c = ((lp - l0) / up - (l0 - lm) / (-um)) / (up - um)
-            beta = (l0 - lm) / (-um) - c * um
-        inverted = ~(c < 0)
-        shift = -beta / (2 * c)
-        sigma2 = -1.0 / (2 * c)
-        log_peak = l0 - beta * beta / (4 * c)
-        # A fitted peak outside the sampled neighbourhood is not trusted.
-        wild = ~(np.abs(shift) <= np.maximum(np.abs(um), np.abs(up)))
+            # weights ∝ 1 / var(q) for a constant noise on y: y² (Gaussian), y^(2+2/p)
+            expo = 2.0 if gauss else 2.0 + 2.0 / power
+            c, b, a = _weighted_parabola([u_at(j) for j in range(2 * k + 1)],
+                                         [to_q(v) for v in y],
+                                         [np.where(m, v ** expo, 0) for m, v in zip(support, y)])
+        shift = -b / (2 * c)  # steps
+        q_min = a - b * b / (4 * c)
+        if gauss:
+            inverted = ~(c > 0)
+            log_amp = -q_min
+            half2 = 0.5 / c  # σ² at e^(−½), steps²
+        else:
+            inverted = ~((c > 0) & (q_min > 0))
+            log_amp = -power * np.log(q_min)
+            half2 = (np.expm1(0.5 / power) * q_min / c)
+        # A fitted peak more than one frame from the sampled maximum is not trusted.
+        wild = ~(np.abs(shift) <= 1.0)
         bad = on_edge | inverted | wild
-        if method == FitMethod.ARGMAX:
-            offset = np.zeros_like(coarse)
-        else:
-            offset = np.where(bad, 0.0, shift).astype(np.float32)
-        height = (z0 + offset).astype(np.float32)
-        sigma = np.where(inverted | on_edge, np.nan, np.sqrt(sigma2)).astype(np.float32)
-        f_peak = np.where(bad, f0, np.exp(np.minimum(log_peak, 80.0))).astype(np.float32)
-        # Pertuz's reliability R over the 2k+1 samples (NaN samples skipped), and the
-        # lowest sample (for the prominence), one window row at a time.
-        res_sum = np.zeros_like(f0)
-        res_n = np.zeros_like(f0)
-        low = np.full_like(f0, np.inf)
-        inv_2s2 = (-0.5 / sigma2).astype(np.float32)
+        offset = np.zeros_like(y0) if method == FitMethod.ARGMAX else np.where(bad, 0.0, shift)
+        offset = offset.astype(np.float32)
+        height = (z0 + offset * step).astype(np.float32)
+        sigma = np.where(inverted | on_edge, np.nan, np.sqrt(half2) * abs(step)).astype(np.float32)
+        amp = np.where(bad, y0, np.exp(np.minimum(log_amp, 80.0))).astype(np.float32)
+        cq = np.where(bad, 1.0, c / (1.0 if gauss else np.where(bad, 1.0, q_min))).astype(np.float32)
+
+        def model(u: np.ndarray) -> np.ndarray:
+            """Fitted curve above the floor at offset u (steps) from the peak frame."""
+            d2 = (u - offset) ** 2 * cq
+            return amp * (np.exp(-d2) if gauss else (1.0 + d2) ** np.float32(-power))
+
+        # Pertuz's reliability R over the peak's support (the samples the fit used); a
+        # support of 3 samples is fitted exactly and says nothing: R = R_EXACT_DB.
+        res_sum = np.zeros_like(y0)
+        res_n = np.zeros_like(y0)
         for j in range(2 * k + 1):
-            wj = w[j]
-            model = f_peak * np.exp((u_at(j) - offset) ** 2 * inv_2s2)
-            r = np.abs(wj - model)
-            ok = np.isfinite(r)
+            r = np.abs(y[j] - model(u_at(j)))
+            ok = np.isfinite(r) & support[j]
             res_sum += np.where(ok, r, 0)
             res_n += ok
-            np.fmin(low, wj, out=low)
         mean_res = res_sum / np.maximum(res_n, 1)
-        rel = 20.0 * np.log10(f_peak / np.maximum(mean_res, 1e-12 * np.maximum(f_peak, _TINY)))
+        rel = 20.0 * np.log10(amp / np.maximum(mean_res, 1e-6 * np.maximum(amp, _TINY)))
+        rel = np.where(res_n <= 3, R_EXACT_DB, np.minimum(rel, R_EXACT_DB))
         rel = np.where(bad, 0.0, rel).astype(np.float32)
-        # The strongest focus more than k frames from the peak, less what the fitted peak
-        # itself predicts k+½ frames out (the tail of a wide peak is not a second peak).
-        step = float(np.median(np.diff(z_mm))) if n > 1 else 1.0
-        tail = np.where(inverted | on_edge, 0.0, np.exp(-((k + 0.5) * step) ** 2 / (2 * sigma2)))
-        ambiguity = np.clip(alternative / np.maximum(best, _TINY) - tail,
+        # The strongest focus more than k frames from the peak, above the floor, less what
+        # the fitted peak itself predicts k+½ frames out (the tail of a wide peak).
+        tail = np.where(inverted | on_edge, 0.0, model(np.float32(k + 0.5) + offset) / amp)
+        ambiguity = np.clip((alternative - floor) / np.maximum(amp, _TINY) - tail,
                             0, 1).astype(np.float32)
-        prominence = np.clip(1.0 - low / np.maximum(f0, _TINY), 0, 1).astype(np.float32)
+        prominence = np.clip(amp / np.maximum(amp + floor, _TINY), 0, 1).astype(np.float32)
     return PeakFit(
         height_mm=height,
-        coarse_mm=coarse,
-        f_peak=f_peak,
+        coarse_mm=z0.astype(np.float32),
+        f_peak=amp,
+        floor=floor,
+        f_best=np.where(np.isfinite(y0), y0, 0).astype(np.float32),
         sigma_mm=sigma,
         reliability_db=rel,
         ambiguity=ambiguity,
@@ -247,29 +296,41 @@ def _fit_block(best_idx, window, alternative, best, z_mm, *, k: int, method: Fit
     )
 
 
-def _lsq_log_parabola(u: np.ndarray, w: np.ndarray):
-    """Least-squares ln F = l0 + β·u + c·u² over the window, weights F² (Caruana/Guo).
+def _weighted_parabola(u: list[np.ndarray], q: list[np.ndarray], wt: list[np.ndarray]):
+    """Per-pixel weighted least squares q = a + b·u + c·u².
 
-    Returns ``(c, beta, l0)`` per pixel.
+    ``u``, ``q``, ``wt`` are lists of (H, W) float32 samples (NaN where missing; weights
+    below 1e-8 of the largest count as missing). The 3 × 3 normal equations are solved
+    by Cramer's rule in float64. Returns ``(c, b, a)`` as float32; NaN where fewer than
+    3 samples carry weight.
     """
-    valid = np.isfinite(w) & np.isfinite(u) & (w > 0)
-    f = np.where(valid, w, 0.0).astype(np.float64)
-    uu = np.where(valid, u, 0.0).astype(np.float64)
-    lg = np.where(valid, np.log(np.maximum(f, 1e-30)), 0.0)
-    wt = f * f
-    s = [np.sum(wt * uu**p, axis=0) for p in range(5)]
-    t = [np.sum(wt * uu**p * lg, axis=0) for p in range(3)]
-    # normal equations [[s0 s1 s2][s1 s2 s3][s2 s3 s4]] · [l0 β c] = [t0 t1 t2]
-    a = np.stack([np.stack([s[0], s[1], s[2]], -1),
-                  np.stack([s[1], s[2], s[3]], -1),
-                  np.stack([s[2], s[3], s[4]], -1)], -2)
-    b = np.stack(t, -1)[..., None]
-    ok = valid.sum(0) >= 3
-    det = np.linalg.det(a)
-    ok &= np.abs(det) > 1e-300
-    a[~ok] = np.eye(3)
-    b[~ok] = 0
-    sol = np.linalg.solve(a, b)[..., 0]
-    l0, beta, c = sol[..., 0], sol[..., 1], sol[..., 2]
+    shape = u[0].shape
+    s = [np.zeros(shape, np.float64) for _ in range(5)]
+    t = [np.zeros(shape, np.float64) for _ in range(3)]
+    count = np.zeros(shape, np.int16)
+    top = np.fmax.reduce(wt)
+    for uj, qj, wj in zip(u, q, wt):
+        ok = np.isfinite(uj) & np.isfinite(qj) & (wj > 1e-8 * top)
+        p = np.where(ok, wj, 0.0).astype(np.float64)
+        uu = np.where(ok, uj, 0.0).astype(np.float64)
+        qq = np.where(ok, qj, 0.0).astype(np.float64)
+        count += ok
+        for m in range(5):
+            s[m] += p
+            if m < 3:
+                t[m] += p * qq
+            p *= uu
+    s0, s1, s2, s3, s4 = s
+    t0, t1, t2 = t
+    # Cramer's rule on [[s0 s1 s2][s1 s2 s3][s2 s3 s4]]·[a b c] = [t0 t1 t2]
+    m00 = s2 * s4 - s3 * s3
+    m01 = s1 * s4 - s2 * s3
+    m02 = s1 * s3 - s2 * s2
+    det = s0 * m00 - s1 * m01 + s2 * m02
+    ok = (count >= 3) & (np.abs(det) > 1e-9 * np.maximum(s0, 1e-300) ** 3)
+    det = np.where(ok, det, 1.0)
+    a = (t0 * m00 - s1 * (t1 * s4 - s3 * t2) + s2 * (t1 * s3 - s2 * t2)) / det
+    b = (s0 * (t1 * s4 - s3 * t2) - t0 * m01 + s2 * (s1 * t2 - t1 * s2)) / det
+    c = (s0 * (s2 * t2 - t1 * s3) - s1 * (s1 * t2 - t1 * s2) + t0 * m02) / det
     c = np.where(ok, c, np.nan)
-    return c.astype(np.float32), beta.astype(np.float32), l0.astype(np.float32)
+    return c.astype(np.float32), b.astype(np.float32), a.astype(np.float32)

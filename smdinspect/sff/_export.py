@@ -154,46 +154,24 @@ def _nice(x: float) -> float:
     return float(10 * e)
 
 
-def render_view3d_png(surface: Surface, path: str | Path, *, max_side: int = 160) -> Path:
+def render_view3d_png(surface: Surface, path: str | Path, *, max_side: int = 384,
+                      size_px: tuple[int, int] = (1280, 960),
+                      z_exaggeration: float | None = None) -> Path:
     """A perspective 3D preview of the textured surface (the picture users look at first).
 
-    Unreliable pixels are filled from their reliable neighbours and the heights median
-    filtered, for the picture only;
-    the vertical axis is exaggerated so that solder fillets are visible (noted on it).
+    Rendered offscreen with VTK by :func:`smdinspect.sff._view3d.render_height_field`:
+    the height field as a lit mesh of at most ``max_side`` vertices a side, textured
+    with the all-in-focus image, axes in mm, the vertical exaggeration written on it.
+    Unreliable pixels get heights interpolated from the reliable ones, for the picture
+    only, and are drawn with their colours faded towards grey.
     """
-    import cv2
+    from ._view3d import display_heights, render_height_field
 
-    path = Path(path)
-    h, w = surface.shape
-    step = max(1, int(np.ceil(max(h, w) / max_side)))
-    height = _fill_unreliable(surface)
-    z = cv2.resize(height, (len(range(0, w, step)), len(range(0, h, step))),
-                   interpolation=cv2.INTER_AREA)
-    z = cv2.medianBlur(z.astype(np.float32), 5)  # display only: tame isolated outliers
-    rgb = cv2.resize(_unit_rgb(surface.aif), (z.shape[1], z.shape[0]), interpolation=cv2.INTER_AREA)
-    p = surface.pixel_size_mm or 1.0
-    xs = np.arange(z.shape[1]) * step * p
-    ys = (h - 1 - np.arange(z.shape[0]) * step) * p
-    xg, yg = np.meshgrid(xs, ys)
-    lo, hi = _display_range(surface)
-    extent = max(xs[-1] - xs[0], abs(ys[0] - ys[-1]), 1e-9)
-    zspan = max(hi - lo, 1e-6)
-    exaggeration = max(1.0, round(0.35 * extent / zspan, 1))
-    fig = _figure(7.5, 6.0)
-    ax = fig.add_subplot(projection="3d")
-    ax.plot_surface(xg, yg, np.clip(z, lo, hi), facecolors=np.clip(rgb, 0, 1), rstride=1,
-                    cstride=1, linewidth=0, antialiased=False, shade=False)
-    ax.set_box_aspect((xs[-1] - xs[0] or 1, abs(ys[0] - ys[-1]) or 1, zspan * exaggeration))
-    ax.view_init(elev=38, azim=-60)
-    unit = "mm" if surface.pixel_size_mm else "px"
-    ax.set_xlabel(f"x ({unit})", fontsize=8)
-    ax.set_ylabel(f"y ({unit})", fontsize=8)
-    ax.set_zlabel("z (mm)", fontsize=8)
-    ax.tick_params(labelsize=7)
-    scale = (f"height exaggerated ×{exaggeration:g}" if surface.pixel_size_mm
-             else "height scaled for display; pixel size unknown")
-    ax.set_title(f"3D view ({scale})", fontsize=9)
-    return _save_figure(fig, path)
+    height = display_heights(surface.height_mm, surface.reliable)
+    render_height_field(height, surface.aif, None, pixel_size_mm=surface.pixel_size_mm,
+                        out_path=path, size_px=size_px, z_exaggeration=z_exaggeration,
+                        filled=~surface.reliable, max_side=max_side)
+    return Path(path)
 
 
 def _fill_unreliable(surface: Surface) -> np.ndarray:

@@ -104,6 +104,18 @@ class FocusOperator(str, Enum):
         return _FAMILY[self.value]
 
     @property
+    def curve_power(self) -> float:
+        """Exponent p of the focus curve F ∝ (σ0² + κ²Δz²)^(−p) this operator follows.
+
+        Defocus blur σ_b grows linearly with the distance Δz from focus; the power
+        spectrum of natural texture falls as 1/ω², so the energy a derivative or
+        operator sees falls as a power of σ_b: measured on real and rendered stacks, a squared
+        (energy) operator gives p ≈ 2 and an absolute-value (amplitude) one p ≈ 1. The
+        ``power`` fit interpolates the peak with this model.
+        """
+        return 1.0 if self.value in _AMPLITUDE else 2.0
+
+    @property
     def uses_threshold(self) -> bool:
         """True if the operator sums a per-pixel response that ``threshold`` applies to."""
         return self.value in _THRESHOLDED
@@ -127,6 +139,8 @@ _THRESHOLDED = frozenset(
     ("sml", "lape", "lapm", "lapd", "ten", "gder", "grae", "grat", "wavs", "bren", "cont",
      "curv", "sfil")
 )
+# Operators that sum absolute values (amplitudes), not squares (energies).
+_AMPLITUDE = frozenset(("lapm", "lapd", "grat", "wavs", "cont", "curv", "hel"))
 # Ratio operators: a negative grey level makes them meaningless.
 _NEEDS_NON_NEGATIVE = frozenset(("glvn", "cheb", "wavr", "dcte", "dctr", "hel"))
 # Variance operators (glvn is a variance over a mean): a 1-px window makes them 0.

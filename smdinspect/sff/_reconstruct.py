@@ -13,11 +13,11 @@ import numpy as np
 
 from ..errors import InputError
 from ..stack import FocalStack
-from ._align import FrameAligner
+from ._align import Alignment, estimate_alignment
 from ._config import FitMethod, FocusConfig
-from ._confidence import confidence_map, depth_edge_mask
+from ._confidence import confidence_map, depth_edge_mask, halo_mask
 from ._depth import PeakTracker, fit_peaks
-from ._focus import focus_measure
+from ._focus import FocusOperator, focus_measure
 from ._surface import Surface
 
 __all__ = ["reconstruct", "to_gray"]
@@ -25,6 +25,8 @@ __all__ = ["reconstruct", "to_gray"]
 log = logging.getLogger(__name__)
 
 Progress = Callable[[int, int], None]
+#: Every frame is scaled to this mean grey level before its focus measure.
+MEAN_GREY = 128.0
 
 
 def to_gray(image: np.ndarray) -> np.ndarray:
@@ -72,16 +74,31 @@ def reconstruct(
     t0 = time.perf_counter()
     n = len(stack)
     z_mm = stack.z_mm
-    aligner = FrameAligner() if config.align else None
+    alignment: Alignment | None = None
+    if config.align:
+        alignment = estimate_alignment(lambda i: to_gray(stack.read_frame(i)), n)
+        log.info("aligned %d frames onto frame %d (the most magnified); field %.1f %% of it",
+                 n, alignment.reference, 100 * alignment.field.mean())
     first = stack.frames[0].path
-
-    def measure(image: np.ndarray) -> np.ndarray:
-        return focus_measure(to_gray(image), operator=config.operator,
-                             window_px=config.window_px, threshold=config.threshold)
 
     def load(i: int):
         image = stack.read_frame(i)
-        return image, (None if aligner else measure(image))
+        gray = to_gray(image)
+        mean = float(gray.mean())
+        # Same mean grey in every frame: exposure drift, flicker and auto-gain change the
+        # focus measure, defocus does not change the mean (blur conserves light).
+        if mean > 0:
+            gray = gray * np.float32(MEAN_GREY / mean)
+        focus = focus_measure(gray, operator=config.operator, window_px=config.window_px,
+                              threshold=config.threshold)
+        if alignment is not None:
+            if image.shape[:2] != alignment.shape:
+                raise InputError(
+                    f"frame {stack.frames[i].path.name} is {_describe(image.shape)} but "
+                    f"{first.name} is {_describe(alignment.shape)}; all frames must match")
+            focus = alignment.warp(focus, i)
+            image = alignment.warp(image, i)
+        return image, focus
 
     tracker: PeakTracker | None = None
     aif = None
@@ -107,10 +124,6 @@ def reconstruct(
                 raise InputError(
                     f"frame {stack.frames[i].path.name} is {_describe(image.shape)} but "
                     f"{first.name} is {_describe(ref_shape)}; all frames must match")
-            if aligner is not None:
-                transform = aligner.add(to_gray(image))
-                image = FrameAligner.warp(image, transform)
-                focus = measure(image)
             better = tracker.update(i, focus)
             cv2.copyTo(image, better.view(np.uint8), aif)
             if progress is not None:
@@ -118,17 +131,20 @@ def reconstruct(
     t_stream = time.perf_counter() - t0
 
     tracker.finish()
-    fit = fit_peaks(tracker, z_mm, method=config.fit, workers=config.workers)
-    confidence = confidence_map(fit)
+    fit = fit_peaks(tracker, z_mm, method=config.fit, workers=config.workers,
+                    power=FocusOperator(config.operator).curve_power)
+    confidence = confidence_map(fit, window_px=config.window_px)
     meta: dict = {}
-    if aligner is not None:
-        confidence[~aligner.valid_mask(tracker.shape)] = 0.0
-        meta["alignment"] = {
-            "reference_frame": 0,
-            "failures": aligner.failures,
-            "scale_last_vs_first": float(np.sqrt(abs(np.linalg.det(aligner.transforms[-1][:2, :2])))),
-            "transforms": [a.tolist() for a in aligner.transforms],
-        }
+    field = np.ones(tracker.shape, bool)
+    if alignment is not None:
+        field = alignment.field
+        confidence[~field] = 0.0
+        meta["alignment"] = alignment.summary()
+    if config.halo_ratio > 0:
+        frame_pos = np.interp(fit.height_mm, z_mm, np.arange(n, dtype=np.float64))
+        halo = halo_mask(fit.f_best, frame_pos, confidence >= config.min_confidence,
+                         radius_px=config.window_px + 2, ratio=config.halo_ratio)
+        confidence[halo] = 0.0
     if config.edge_jump_steps > 0:
         edges = depth_edge_mask(fit.height_mm, confidence >= config.min_confidence,
                                 jump_mm=config.edge_jump_steps * stack.step_mm,
@@ -164,6 +180,7 @@ def reconstruct(
         aif=aif,
         pixel_size_mm=stack.pixel_size_mm,
         z_mm=z_mm,
+        field=field,
         meta=meta,
     )
 

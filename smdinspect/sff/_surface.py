@@ -2,7 +2,8 @@
 
 from __future__ import annotations
 
-from dataclasses import dataclass, field
+from dataclasses import dataclass
+from dataclasses import field as _field
 from typing import Any
 
 import numpy as np
@@ -54,6 +55,9 @@ class Surface:
         Object-side pixel size; ``None`` when unknown (x, y then in pixels).
     z_mm : (n_frames,) float64
         Focused-plane heights of the frames used.
+    field : (H, W) bool, optional
+        Pixels every frame sees (after alignment); all True without alignment.
+        Pixels outside it are unreliable.
     meta : dict
         Settings and timings, written to ``summary.json``.
     """
@@ -67,7 +71,12 @@ class Surface:
     aif: np.ndarray
     pixel_size_mm: float | None
     z_mm: np.ndarray
-    meta: dict[str, Any] = field(default_factory=dict)
+    field: np.ndarray | None = None
+    meta: dict[str, Any] = _field(default_factory=dict)
+
+    def __post_init__(self) -> None:
+        if self.field is None:
+            object.__setattr__(self, "field", np.ones(self.height_mm.shape, bool))
 
     @property
     def shape(self) -> tuple[int, int]:
