@@ -54,8 +54,8 @@ def register(sub: argparse._SubParsersAction) -> None:
                    help="focus measure (default sml)")
     f.add_argument("--window-px", type=int, default=None,
                    help="focus window side, odd (default: the inspection's, 5)")
-    f.add_argument("--fit", default=None, choices=["gauss3", "lsq", "argmax"],
-                   help="peak model (default gauss3)")
+    f.add_argument("--fit", default=None, choices=["power", "gauss3", "lsq", "argmax"],
+                   help="peak model (default power)")
     f.add_argument("--fit-half-width", type=int, default=None,
                    help="frames kept each side of the peak (default 3)")
     f.add_argument("--min-confidence", type=float, default=None,

@@ -13,7 +13,7 @@ log = logging.getLogger(__name__)
 
 def add_stack_arguments(p: argparse.ArgumentParser) -> None:
     """Stack input and focus options shared by ``reconstruct`` and ``inspect``."""
-    from ..sff import OPERATORS
+    from ..sff import FitMethod, OPERATORS
 
     p.add_argument("stack", nargs="+", metavar="STACK",
                    help="a stack directory (with stack.json) or image files in focus order")
@@ -24,8 +24,10 @@ def add_stack_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--operator", default="sml", choices=OPERATORS, metavar="OP",
                    help="focus measure (default sml; one of: %(choices)s)")
     p.add_argument("--window-px", type=int, default=9, help="focus window side, odd (default %(default)s)")
-    p.add_argument("--fit", default="gauss3", choices=["gauss3", "lsq", "argmax"],
-                   help="peak model (default gauss3: Nayar's 3-point Gaussian)")
+    p.add_argument("--fit", default="power", choices=[m.value for m in FitMethod],
+                   help="peak model, fitted above the curve's floor (default power: the "
+                        "power-law peak of defocused texture; gauss3: Nayar's 3-point "
+                        "Gaussian; lsq: least-squares Gaussian; argmax)")
     p.add_argument("--fit-half-width", type=int, default=3,
                    help="frames kept each side of the peak for R and lsq (default 3)")
     p.add_argument("--min-confidence", type=float, default=0.5,

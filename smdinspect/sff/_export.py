@@ -65,11 +65,14 @@ def write_point_cloud(surface: Surface, path: str | Path, *, keep_unreliable: bo
 
 
 def height_field_mesh(surface: Surface, *, keep_unreliable: bool = False,
-                      max_side: int = MESH_MAX_SIDE):
+                      max_side: int = MESH_MAX_SIDE, dense: bool = True):
     """Triangulate the height map as a ``trimesh.Trimesh`` (mm, vertex colours).
 
-    The grid is subsampled so neither side exceeds ``max_side`` vertices. A triangle is
-    kept only if its three vertices are reliable (all, with ``keep_unreliable``).
+    The grid is subsampled so neither side exceeds ``max_side`` vertices. With
+    ``dense`` (default) the mesh is the dense surface (:attr:`Surface.dense`: measured
+    heights, edge-aware fill elsewhere) over the field every frame sees; otherwise a
+    triangle is kept only if its three vertices are reliable (all, with
+    ``keep_unreliable``).
     """
     trimesh = _require("trimesh")
     h, w = surface.shape
@@ -78,9 +81,14 @@ def height_field_mesh(surface: Surface, *, keep_unreliable: bool = False,
     cols = np.arange(0, w, step)
     rr, cc = np.meshgrid(rows, cols, indexing="ij")
     x, y = surface.xy_mm()
+    z = surface.dense[0] if dense else surface.height_mm
     verts = np.column_stack([x[rr, cc].ravel(), y[rr, cc].ravel(),
-                             surface.height_mm[rr, cc].ravel().astype(np.float64)])
-    ok = (np.ones(rr.shape, bool) if keep_unreliable else surface.reliable[rr, cc]).ravel()
+                             z[rr, cc].ravel().astype(np.float64)])
+    if dense:
+        keep = surface.field
+    else:
+        keep = np.ones(surface.shape, bool) if keep_unreliable else surface.reliable
+    ok = keep[rr, cc].ravel()
     gh, gw = rr.shape
     idx = np.arange(gh * gw).reshape(gh, gw)
     a, b = idx[:-1, :-1].ravel(), idx[:-1, 1:].ravel()
@@ -162,27 +170,16 @@ def render_view3d_png(surface: Surface, path: str | Path, *, max_side: int = 384
     Rendered offscreen with VTK by :func:`smdinspect.sff._view3d.render_height_field`:
     the height field as a lit mesh of at most ``max_side`` vertices a side, textured
     with the all-in-focus image, axes in mm, the vertical exaggeration written on it.
-    Unreliable pixels get heights interpolated from the reliable ones, for the picture
-    only, and are drawn with their colours faded towards grey.
+    It shows the dense surface (:attr:`Surface.dense`); filled pixels are drawn with
+    their colours faded towards grey, pixels outside the field grey.
     """
-    from ._view3d import display_heights, render_height_field
+    from ._view3d import render_height_field
 
-    height = display_heights(surface.height_mm, surface.reliable)
-    render_height_field(height, surface.aif, None, pixel_size_mm=surface.pixel_size_mm,
+    height, filled, _ = surface.dense
+    render_height_field(height, surface.aif, surface.field, pixel_size_mm=surface.pixel_size_mm,
                         out_path=path, size_px=size_px, z_exaggeration=z_exaggeration,
-                        filled=~surface.reliable, max_side=max_side)
+                        filled=filled, max_side=max_side)
     return Path(path)
-
-
-def _fill_unreliable(surface: Surface) -> np.ndarray:
-    """Heights with unreliable pixels replaced by the nearest reliable one (display only)."""
-    from scipy import ndimage
-
-    height = surface.height_mm.astype(np.float32)
-    if surface.reliable.all() or not surface.reliable.any():
-        return height
-    _, (ri, ci) = ndimage.distance_transform_edt(~surface.reliable, return_indices=True)
-    return height[ri, ci]
 
 
 def write_reconstruction(
@@ -197,8 +194,11 @@ def write_reconstruction(
 
     Files: ``height_mm.tiff`` (float32, every pixel), ``confidence.tiff`` (float32,
     [0, 1]), ``sigma_mm.tiff`` (float32, fitted focus-peak width σ_F, NaN where the fit
-    failed), ``aif.png``, ``height.png``, ``view3d.png``, ``cloud.ply``, ``mesh.ply``,
-    ``mesh.stl`` and ``summary.json``.
+    failed), ``aif.png``, the dense surface ``height_filled_mm.tiff`` (measured heights
+    kept, the rest filled) with ``filled.png`` (255 = filled) and its uncertainty
+    ``sigma_filled_mm.tiff``, ``field.png`` (255 = seen by every frame), ``height.png``,
+    ``view3d.png``, ``cloud.ply`` (measured points only), ``mesh.ply`` and ``mesh.stl``
+    (the dense surface over the field) and ``summary.json``.
 
     Returns
     -------
@@ -213,6 +213,11 @@ def write_reconstruction(
     paths["confidence.tiff"] = _atomic.write_tiff(out / "confidence.tiff", surface.confidence.astype(np.float32))
     paths["sigma_mm.tiff"] = _atomic.write_tiff(out / "sigma_mm.tiff", surface.sigma_mm.astype(np.float32))
     paths["aif.png"] = _atomic.write_image(out / "aif.png", _png_ready(surface.aif))
+    dense_h, filled, dense_sigma = surface.dense
+    paths["height_filled_mm.tiff"] = _atomic.write_tiff(out / "height_filled_mm.tiff", dense_h)
+    paths["sigma_filled_mm.tiff"] = _atomic.write_tiff(out / "sigma_filled_mm.tiff", dense_sigma)
+    paths["filled.png"] = _atomic.write_image(out / "filled.png", filled.astype(np.uint8) * 255)
+    paths["field.png"] = _atomic.write_image(out / "field.png", surface.field.astype(np.uint8) * 255)
     if previews:
         paths["height.png"] = render_height_png(surface, out / "height.png")
         paths["view3d.png"] = render_view3d_png(surface, out / "view3d.png")

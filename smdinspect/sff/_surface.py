@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 from dataclasses import dataclass
+from functools import cached_property
 from dataclasses import field as _field
 from typing import Any
 
@@ -81,6 +82,21 @@ class Surface:
     @property
     def shape(self) -> tuple[int, int]:
         return self.height_mm.shape  # type: ignore[return-value]
+
+    @cached_property
+    def dense(self) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """The dense surface ``(height_mm, filled, sigma_mm)``, each (H, W).
+
+        Measured heights where reliable; elsewhere (inside :attr:`field`) an edge-aware
+        fill guided by the all-in-focus image, with ``filled`` True and its own
+        uncertainty ``sigma_mm`` (see :func:`smdinspect.sff._fill.fill_surface`).
+        Pixels outside the field are filled too and flagged. Never judged by inspection.
+        """
+        from ._fill import fill_surface
+
+        step = float(np.median(np.abs(np.diff(self.z_mm)))) if len(self.z_mm) > 1 else 1.0
+        return fill_surface(self.height_mm, self.reliable, self.aif,
+                            confidence=self.confidence, step_mm=step)
 
     @property
     def coverage(self) -> float:

@@ -2,6 +2,7 @@
 
 import json
 
+import cv2
 import numpy as np
 import pytest
 import tifffile
@@ -32,7 +33,14 @@ def test_outputs(cone_stack, tmp_path, capsys):
     assert "coverage" in capsys.readouterr().out
     names = {p.name for p in out.iterdir()}
     assert names == {"height_mm.tiff", "confidence.tiff", "sigma_mm.tiff", "aif.png", "height.png", "view3d.png",
-                     "cloud.ply", "mesh.ply", "mesh.stl", "summary.json"}
+                     "cloud.ply", "mesh.ply", "mesh.stl", "summary.json", "height_filled_mm.tiff",
+                     "sigma_filled_mm.tiff", "filled.png", "field.png"}
+    dense = tifffile.imread(out / "height_filled_mm.tiff")
+    filled = cv2.imread(str(out / "filled.png"), cv2.IMREAD_GRAYSCALE) > 0
+    measured = tifffile.imread(out / "height_mm.tiff")
+    conf = tifffile.imread(out / "confidence.tiff")
+    assert np.array_equal(dense[~filled], measured[~filled])  # measured never replaced
+    assert np.array_equal(~filled, conf >= 0.5) and np.isfinite(dense).all()
     height = tifffile.imread(out / "height_mm.tiff")
     conf = tifffile.imread(out / "confidence.tiff")
     assert height.dtype == np.float32 and height.shape == (128, 128)
