@@ -1,6 +1,7 @@
 """Per-pixel confidence in [0, 1] from the fitted focus peak.
 
-Four cues, each mapped to [0, 1] by a smooth ramp and multiplied:
+Four cues, each mapped to [0, 1] by a smooth ramp and multiplied (R over the fit's
+support only: a 3-sample fit is exact and R does not judge it):
 
 * **Reliability R** (Pertuz et al.): 20·log10(F_peak / mean|F − model|) over the ±k
   frames around the peak. A clean Gaussian peak gives R ≫ 20 dB; a noise-only
@@ -9,9 +10,10 @@ Four cues, each mapped to [0, 1] by a smooth ramp and multiplied:
 * **Peak width σ_F**: a focus peak cannot be narrower than the optics allow; a peak
   much wider than the stack's typical width (the median σ_F of the pixels with
   R ≥ 20 dB) is a weak, low-texture one. Ramp from 1 at 2× to 0 at 4× the typical width.
-* **Prominence** P = 1 − (lowest focus within ±k frames) / F_peak: a peak must rise
-  clearly above the curve's floor within the fit window. Textureless pixels (focus =
-  sensor noise, flat in z) have P near 0. Ramp from 0 at P = 0.15 to 1 at P = 0.4.
+* **Noise test** on the peak-to-floor ratio A/b (A the highest sampled focus above the
+  floor b): a textureless pixel's curve is the sensor noise's focus measure, whose
+  spread relative to its mean falls as 1/√N with the N = window² pixels summed, so the
+  ratio is scaled by window/9 and ramped from 1.2 (0) to 2.2 (1).
 * **Ambiguity** A = (strongest focus more than k frames away from the peak) / F_peak,
   less the fitted Gaussian's own value k+½ frames out (the tail of a wide peak is not a
   second peak). Flat, textureless curves have A near 1; a second peak (a defocused
