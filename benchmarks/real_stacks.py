@@ -53,26 +53,6 @@ def open_real_stack(folder: Path, pattern: str, step_mm: float | None) -> tuple[
     return FocalStack(tuple(sorted(frames, key=lambda f: f.z_mm))), paths, -1.0
 
 
-def field_of(surface) -> np.ndarray:
-    """(H, W) bool: pixels every aligned frame sees.
-
-    ``surface.field`` when the library provides it; else recomputed from the alignment
-    transforms in ``surface.meta`` (frame-0 pixel -> frame-n pixel); else all True.
-    """
-    field = getattr(surface, "field", None)
-    if field is not None:
-        return np.asarray(field, bool)
-    h, w = surface.shape
-    ok = np.ones((h, w), bool)
-    rows, cols = np.indices((h, w), dtype=np.float32)
-    for a in surface.meta.get("alignment", {}).get("transforms", []):
-        a = np.asarray(a)
-        x = a[0, 0] * cols + a[0, 1] * rows + a[0, 2]
-        y = a[1, 0] * cols + a[1, 1] * rows + a[1, 2]
-        ok &= (x >= 0) & (x <= w - 1) & (y >= 0) & (y <= h - 1)
-    return ok
-
-
 def local_median(height: np.ndarray, mask: np.ndarray, block_px: int) -> np.ndarray:
     """Median of the ``mask`` heights in each ``block_px`` square, upsampled to (H, W).
 
@@ -281,7 +261,7 @@ def main(argv: list[str] | None = None) -> int:
             times.append(time.perf_counter() - t0)
         even_stack = FocalStack(stack.frames[::2], pixel_size_mm=stack.pixel_size_mm)
         even = reconstruct(even_stack, config)
-        r = figures(name, full, even, field_of(full))
+        r = figures(name, full, even, full.field)
         r.update(reconstruct_s=statistics.median(times), repeat=args.repeat,
                  alignment_failures=full.meta.get("alignment", {}).get("failures"))
         if not args.quick:

@@ -68,8 +68,9 @@ def confidence_map(fit: PeakFit, *, window_px: int = 9) -> np.ndarray:
     -------
     confidence : (H, W) float32 in [0, 1]
     """
-    cues = confidence_cues(fit, window_px=window_px)
-    conf = np.prod(np.stack(list(cues.values())), axis=0).astype(np.float32)
+    conf = np.ones(fit.interior.shape, np.float32)
+    for cue in confidence_cues(fit, window_px=window_px).values():
+        conf *= cue
     conf[~fit.interior] = 0.0
     return conf
 
@@ -77,7 +78,7 @@ def confidence_map(fit: PeakFit, *, window_px: int = 9) -> np.ndarray:
 def confidence_cues(fit: PeakFit, *, window_px: int = 9) -> dict[str, np.ndarray]:
     """The four cues of :func:`confidence_map`, each (H, W) in [0, 1].
 
-    The prominence test is a noise test: on a textureless pixel the focus curve is the
+    The noise test: on a textureless pixel the focus curve is the
     sensor noise's focus measure, whose frame-to-frame spread relative to its mean falls
     as 1/√N with the N = window_px² pixels summed, so the peak-to-floor ratio A/b it can
     fake shrinks as 1/window_px. The ramp is on (A/b)·window_px/9: at the default 9-px
@@ -96,7 +97,7 @@ def confidence_cues(fit: PeakFit, *, window_px: int = 9) -> dict[str, np.ndarray
         snr = np.nan_to_num(fit.f_best / fit.floor, nan=0.0, posinf=1e6) * (window_px / 9.0)
     return {"reliability": c_r, "width": c_w,
             "ambiguity": _ramp(fit.ambiguity, AMBIG_BAD, AMBIG_OK),
-            "prominence": _ramp(snr, SNR_BAD, SNR_OK)}
+            "noise": _ramp(snr, SNR_BAD, SNR_OK)}
 
 
 def depth_edge_mask(height_mm: np.ndarray, reliable: np.ndarray, *, jump_mm: float,

@@ -58,8 +58,9 @@ class FocusConfig:
         (within a window and 2 px) peaking at least two frames away is unreliable: its peak is
         the defocused neighbour's blur (a halo). 0 turns the check off. Default 4.
     align : bool
-        Register every frame to the middle frame (scale, rotation, translation) before
-        measuring focus; needed for ordinary (non-telecentric) lenses.
+        Register the frames (affine, by ECC) onto the most magnified frame's grid and
+        resample their focus measures there; needed for ordinary (non-telecentric)
+        lenses (see :func:`smdinspect.sff.estimate_alignment`).
     workers : int
         Threads that decode frames and compute focus measures (≥ 1).
     """

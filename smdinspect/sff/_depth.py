@@ -7,11 +7,11 @@ out of the ring once the k frames after the best have been seen), and the strong
 focus value seen *away* from the peak (more than k frames from it), which reveals a
 second peak (e.g. a defocused component edge bleeding over the board).
 
-The focus curve around the peak is modelled as F(z) = F_peak·exp(−(z − z̄)²/(2σ_F²)),
-i.e. a parabola in ln F. ``gauss3`` passes it through the peak and its two neighbours
-(Nayar's 3-point Gaussian interpolation, generalised to uneven z spacing); ``lsq`` fits
-it to the 2k+1 samples by least squares weighted by F² (so noisy low values count little).
-Pertuz's reliability R = 20·log10(F_peak / mean|F − model|) over the 2k+1 samples (dB).
+The tracker also keeps each pixel's floor, its lowest focus over the stack (defocused
+texture plus noise); :func:`fit_peaks` fits the peak to F − floor, by default as the
+power-law peak A/(1 + (z − z̄)²/γ²)^p of a defocus-blurred natural texture, or as a
+Gaussian (``lsq``, Nayar's ``gauss3``). Pertuz's reliability R = 20·log10(A / mean|F −
+model|) is taken over the samples the fit used (dB).
 """
 
 from __future__ import annotations
@@ -135,20 +135,19 @@ class PeakFit:
     sigma_mm: np.ndarray  # float32, fitted width σ_F; NaN where the fit is inverted
     reliability_db: np.ndarray  # float32, Pertuz's R of the fit over ±k frames
     ambiguity: np.ndarray  # float32 in [0, 1]: excess focus away from the peak / A
-    prominence: np.ndarray  # float32 in [0, 1]: A / (A + floor)
     interior: np.ndarray  # bool: peak not on the first/last frame and fit not inverted
     best_idx: np.ndarray  # int16
 
 
 def fit_peaks(tracker: PeakTracker, z_mm: np.ndarray, *, method: FitMethod,
               power: float = 2.0, workers: int = 1) -> PeakFit:
-    """Fit the Gaussian focus-curve model to the tracked windows.
+    """Fit the focus-curve peak of every pixel above the curve's floor.
 
-    The model is F(z) = b + A·exp(−(z − z̄)²/(2σ_F²)): a Gaussian peak on the curve's
-    floor b (the focus measure of fully defocused texture plus noise, tracked as the
-    lowest focus over all frames). Without b the tails of a narrow peak sink into the
-    floor, the fit pulls every peak towards its frame and heights terrace at whole
-    frames whenever the step is coarse against the depth of field.
+    The floor b is the focus measure of fully defocused texture plus noise, tracked as
+    the lowest focus over all frames; every model is fitted to F − b. Without b the
+    tails of a narrow peak sink into the floor, the fit pulls every peak towards its
+    frame and heights terrace at whole frames whenever the step is coarse against the
+    depth of field.
 
     Parameters
     ----------
@@ -157,10 +156,13 @@ def fit_peaks(tracker: PeakTracker, z_mm: np.ndarray, *, method: FitMethod,
     z_mm : (n_frames,) float64
         Ascending focused-plane heights of the frames.
     method : FitMethod
-        ``lsq``: ln(F − b) = l0 + β·u + c·u² by least squares over the 2k+1 samples,
-        weighted by (F − b)² (Guo's weighting: samples near the floor carry no weight).
-        ``gauss3``: the same parabola through the peak and its two neighbours (Nayar's
-        3-point Gaussian interpolation, on F − b). ``argmax``: the peak frame only.
+        ``power``: F − b = A/(1 + (u − μ)²/γ²)^p, i.e. (F − b)^(−1/p) a parabola in u,
+        by least squares weighted by (F − b)^(2+2/p) over the peak's support.
+        ``lsq``: ln(F − b) a parabola, weighted by (F − b)² (Guo's weighting), over the
+        same support. ``gauss3``: ln(F − b) through the peak and its two neighbours
+        (Nayar's 3-point Gaussian interpolation). ``argmax``: the peak frame only.
+    power : float
+        p of the ``power`` model (:attr:`FocusOperator.curve_power`).
     workers : int
         Threads; the rows are split into this many blocks (numpy releases the GIL).
     """
@@ -255,7 +257,8 @@ def _fit_block(best_idx, window, alternative, best, floor, z_mm, *, k: int,
         height = (z0 + offset * step).astype(np.float32)
         sigma = np.where(inverted | on_edge, np.nan, np.sqrt(half2) * abs(step)).astype(np.float32)
         amp = np.where(bad, y0, np.exp(np.minimum(log_amp, 80.0))).astype(np.float32)
-        cq = np.where(bad, 1.0, c / (1.0 if gauss else np.where(bad, 1.0, q_min))).astype(np.float32)
+        # curvature of q relative to its minimum: model d² = (u − μ)²·cq
+        cq = np.where(bad, 1.0, c if gauss else c / q_min).astype(np.float32)
 
         def model(u: np.ndarray) -> np.ndarray:
             """Fitted curve above the floor at offset u (steps) from the peak frame."""
@@ -280,7 +283,6 @@ def _fit_block(best_idx, window, alternative, best, floor, z_mm, *, k: int,
         tail = np.where(inverted | on_edge, 0.0, model(np.float32(k + 0.5) + offset) / amp)
         ambiguity = np.clip((alternative - floor) / np.maximum(amp, _TINY) - tail,
                             0, 1).astype(np.float32)
-        prominence = np.clip(amp / np.maximum(amp + floor, _TINY), 0, 1).astype(np.float32)
     return PeakFit(
         height_mm=height,
         coarse_mm=z0.astype(np.float32),
@@ -290,7 +292,6 @@ def _fit_block(best_idx, window, alternative, best, floor, z_mm, *, k: int,
         sigma_mm=sigma,
         reliability_db=rel,
         ambiguity=ambiguity,
-        prominence=prominence,
         interior=~bad,
         best_idx=best_idx,
     )

@@ -107,11 +107,11 @@ class FocusOperator(str, Enum):
     def curve_power(self) -> float:
         """Exponent p of the focus curve F ∝ (σ0² + κ²Δz²)^(−p) this operator follows.
 
-        Defocus blur σ_b grows linearly with the distance Δz from focus; the power
-        spectrum of natural texture falls as 1/ω², so the energy a derivative or
-        operator sees falls as a power of σ_b: measured on real and rendered stacks, a squared
-        (energy) operator gives p ≈ 2 and an absolute-value (amplitude) one p ≈ 1. The
-        ``power`` fit interpolates the peak with this model.
+        Defocus blur σ_b grows linearly with the distance Δz from focus, and the power
+        spectrum of natural texture falls as 1/ω², so what a derivative operator sees
+        falls as a power of σ_b: p ≈ 2 for a squared (energy) operator, p ≈ 1 for an
+        absolute-value (amplitude) one (p = 2 gave uniform sub-frame positions on a
+        coarsely stepped plane where a Gaussian terraced). The ``power`` fit uses it.
         """
         return 1.0 if self.value in _AMPLITUDE else 2.0
 

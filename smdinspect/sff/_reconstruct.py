@@ -93,9 +93,7 @@ def reconstruct(
                               threshold=config.threshold)
         if alignment is not None:
             if image.shape[:2] != alignment.shape:
-                raise InputError(
-                    f"frame {stack.frames[i].path.name} is {_describe(image.shape)} but "
-                    f"{first.name} is {_describe(alignment.shape)}; all frames must match")
+                raise _mismatch(stack.frames[i].path, image.shape, first, alignment.shape)
             focus = alignment.warp(focus, i)
             image = alignment.warp(image, i)
         return image, focus
@@ -121,9 +119,7 @@ def reconstruct(
                 tracker = PeakTracker(image.shape[:2], n, half_width=config.fit_half_width)
                 aif = np.zeros_like(image)
             elif image.shape != ref_shape:
-                raise InputError(
-                    f"frame {stack.frames[i].path.name} is {_describe(image.shape)} but "
-                    f"{first.name} is {_describe(ref_shape)}; all frames must match")
+                raise _mismatch(stack.frames[i].path, image.shape, first, ref_shape)
             better = tracker.update(i, focus)
             cv2.copyTo(image, better.view(np.uint8), aif)
             if progress is not None:
@@ -183,6 +179,11 @@ def reconstruct(
         field=field,
         meta=meta,
     )
+
+
+def _mismatch(path, shape, first, ref_shape) -> InputError:
+    return InputError(f"frame {path.name} is {_describe(shape)} but {first.name} is "
+                      f"{_describe(ref_shape)}; all frames must match")
 
 
 def _describe(shape: tuple[int, ...]) -> str:

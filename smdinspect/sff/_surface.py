@@ -3,8 +3,8 @@
 from __future__ import annotations
 
 from dataclasses import dataclass
-from functools import cached_property
 from dataclasses import field as _field
+from functools import cached_property
 from typing import Any
 
 import numpy as np

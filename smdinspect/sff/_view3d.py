@@ -19,7 +19,7 @@ import numpy as np
 from .. import _atomic
 from ..errors import InputError
 
-__all__ = ["display_heights", "render_height_field"]
+__all__ = ["render_height_field"]
 
 log = logging.getLogger(__name__)
 
@@ -296,31 +296,6 @@ def _build_scene(height, colours, ok, fade, *, pixel_size_mm, z_exaggeration, ma
                   rows=rows, cols=cols, shape=(h, w), units=units, zlo=zlo, zhi=zhi,
                   pixel_size_mm=pixel_size_mm, n_valid=n_valid, coverage=n_valid / ok.size,
                   filled_share=0.0 if fade is None else float((fade & ok).mean()), step=step)
-
-
-def display_heights(height_mm: np.ndarray, measured: np.ndarray, *, window_px: int = 15
-                    ) -> np.ndarray:
-    """A dense height map for the picture only: unmeasured pixels interpolated.
-
-    Measured pixels with fewer than a quarter of their ``window_px`` neighbourhood
-    measured are taken as strays and interpolated too; the others keep their heights.
-    For callers that have no filled surface yet (:func:`render_view3d_png`).
-
-    Parameters
-    ----------
-    height_mm : (H, W) float
-    measured : (H, W) bool
-
-    Returns
-    -------
-    (H, W) float32
-    """
-    import cv2
-
-    m = np.asarray(measured, bool) & np.isfinite(height_mm)
-    k = (int(window_px), int(window_px))
-    share = cv2.blur(m.astype(np.float32), k, borderType=cv2.BORDER_REFLECT)
-    return _fill_invalid(np.asarray(height_mm, np.float32), m & (share >= MIN_VALID_OF_BLOCK))
 
 
 def _fill_invalid(height: np.ndarray, weight: np.ndarray) -> np.ndarray:

@@ -9,7 +9,7 @@ import pytest
 
 from smdinspect.errors import InputError
 from smdinspect.sff import Surface, render_view3d_png
-from smdinspect.sff._view3d import _build_scene, display_heights, render_height_field
+from smdinspect.sff._view3d import _build_scene, render_height_field
 
 SIZE = (400, 300)  # small renders keep the tests fast
 RED = (220, 30, 30)
@@ -134,16 +134,6 @@ def test_auto_exaggeration_shows_small_relief():
     tall = _build_scene(height * 100, rgb, np.ones(height.shape, bool), None, pixel_size_mm=0.05,
                         z_exaggeration=None, max_side=384)
     assert tall.ex == 1  # never squashed
-
-
-def test_display_heights_keeps_measured_and_fills_the_rest():
-    yy, xx = np.mgrid[0:64, 0:64]
-    ramp = (0.01 * xx).astype(np.float32)
-    measured = np.ones(ramp.shape, bool)
-    measured[20:40, 20:40] = False
-    out = display_heights(np.where(measured, ramp, 99.0), measured)
-    assert np.array_equal(out[measured], ramp[measured])
-    assert np.abs(out[~measured] - ramp[~measured]).max() < 0.05
 
 
 def test_render_view3d_png_from_a_surface(tmp_path, cone):
