@@ -43,7 +43,7 @@ def main() -> None:
         stack = render_stack(cone, _sweep(1.6), optics=Optics.for_pixel_size(0.015), seed=5,
                              out=tmp / "cone", previews=False)
         fits = {fit: _errors(reconstruct(stack, FocusConfig(fit=fit)), cone.height_mm)
-                for fit in ("gauss3", "lsq", "argmax")}
+                for fit in ("power", "gauss3", "lsq", "argmax")}
         print("cone 512 px, 15 um/px, %d frames: RMSE on confident pixels %s" % (
             len(stack), ", ".join(f"{k} {np.sqrt(np.mean(e ** 2)):.3f} step"
                                   for k, e in fits.items())))
