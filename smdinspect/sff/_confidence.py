@@ -163,20 +163,36 @@ def halo_mask(amplitude: np.ndarray, frame_pos: np.ndarray, candidate: np.ndarra
     bins[~np.isfinite(frame_pos)] = 0
     nb = int(bins.max()) + 1
     gap = max(1, int(np.ceil(min_frames)))
-    pad = np.zeros((hs * s, ws * s), np.float32)
-    strong = np.where(candidate, amplitude, 0).astype(np.float32)
-    small = np.zeros((nb, hs, ws), np.float32)
-    for b in range(nb):
-        sel = bins == b
-        if not (sel & candidate).any():
-            continue
-        pad[:h, :w] = np.where(sel, strong, 0)
-        small[b] = cv2.dilate(pad.reshape(hs, s, ws, s).max(axis=(1, 3)), disk)
-    below = np.maximum.accumulate(small, axis=0)  # max over bins <= b
-    above = np.maximum.accumulate(small[::-1], axis=0)[::-1]  # max over bins >= b
-    rows = (np.arange(h) // s)[:, None]
-    cols = (np.arange(w) // s)[None, :]
-    lo, hi = bins - gap, bins + gap
-    dom = np.where(lo >= 0, below[np.clip(lo, 0, nb - 1), rows, cols], 0)
-    dom = np.maximum(dom, np.where(hi < nb, above[np.clip(hi, 0, nb - 1), rows, cols], 0))
-    return dom > ratio * amplitude
+    strong = np.where(candidate, amplitude, 0).astype(np.float32).ravel()
+    # pixels grouped by bin, and the reduced-grid cell of each pixel
+    order = np.argsort(bins.ravel(), kind="stable")
+    starts = np.searchsorted(bins.ravel()[order], np.arange(nb + 1))
+    members = [order[starts[b]:starts[b + 1]] for b in range(nb)]
+    cell = ((np.arange(h) // s)[:, None] * ws + (np.arange(w) // s)[None, :]).ravel()
+    has_candidate = [bool(strong[m].any()) for m in members]
+    pad = np.zeros(hs * s * ws * s, np.float32)
+    pad2 = pad.reshape(hs * s, ws * s)
+    flat = (np.arange(h)[:, None] * (ws * s) + np.arange(w)[None, :]).ravel()
+
+    def spread(b: int) -> np.ndarray:
+        """Bin b's candidate amplitudes, max-pooled to cells and dilated by the radius."""
+        pad.fill(0)
+        pad[flat[members[b]]] = strong[members[b]]
+        pooled = pad2 if s == 1 else pad2.reshape(hs, s, ws, s).max(axis=(1, 3))
+        return cv2.dilate(pooled, disk).ravel()
+
+    dom = np.zeros(h * w, np.float32)
+    # one pass upwards (neighbours >= gap bins lower), one downwards; memory: gap arrays
+    for bins_in_order in (range(nb), range(nb - 1, -1, -1)):
+        running = np.zeros(hs * ws, np.float32)
+        pending: list[np.ndarray | None] = []
+        for b in bins_in_order:
+            pending.append(spread(b) if has_candidate[b] else None)
+            if len(pending) > gap:
+                done = pending.pop(0)
+                if done is not None:
+                    np.maximum(running, done, out=running)
+            m = members[b]
+            if m.size:
+                dom[m] = np.maximum(dom[m], running[cell[m]])
+    return dom.reshape(h, w) > ratio * amplitude
