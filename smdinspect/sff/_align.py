@@ -29,6 +29,8 @@ from typing import Callable
 import cv2
 import numpy as np
 
+from ._focus import noise_sigma
+
 __all__ = ["Alignment", "estimate_alignment"]
 
 log = logging.getLogger(__name__)
@@ -58,6 +60,12 @@ class Alignment:
     failed : list of int
         Frames whose registration failed (ECC did not converge or correlated below
         ``MIN_CORRELATION``); their warp reuses the previous step.
+    noise_sigma : float
+        Sensor noise σ in the frames' grey units: the median of the per-frame estimates
+        (:func:`~smdinspect.sff._focus.noise_sigma`). Texture inflates an estimate and
+        JPEG smoothing of defocused frames deflates it; too large is the safe side (the
+        magnification correction of :func:`reconstruct` then leaves weak texture
+        uncorrected instead of faking a peak in textureless pixels). 0 when unknown.
     """
 
     transforms: list[np.ndarray]
@@ -66,6 +74,7 @@ class Alignment:
     field: np.ndarray
     correlation: list[float] = _field(default_factory=list)
     failed: list[int] = _field(default_factory=list)
+    noise_sigma: float = 0.0
 
     @property
     def ok(self) -> bool:
@@ -126,6 +135,7 @@ def estimate_alignment(read_gray: Callable[[int], np.ndarray], n_frames: int, *,
     steps = [np.eye(3)]  # frame n-1 coords -> frame n coords, full resolution
     correlation = [1.0]
     failed: list[int] = []
+    sigmas: list[float] = []
     prev = None
     last = np.eye(3, dtype=np.float32)[:2]
     shape = None
@@ -134,6 +144,7 @@ def estimate_alignment(read_gray: Callable[[int], np.ndarray], n_frames: int, *,
         if shape is None:
             shape = gray.shape[:2]
             scale = min(1.0, _MAX_SIDE / max(shape))
+        sigmas.append(noise_sigma(gray))
         small = _small(gray, scale)
         if prev is not None:
             warp = last.copy()
@@ -165,7 +176,8 @@ def estimate_alignment(read_gray: Callable[[int], np.ndarray], n_frames: int, *,
     inv_ref = np.linalg.inv(to_frame[ref])
     transforms = [a @ inv_ref for a in to_frame]
     return Alignment(transforms=transforms, reference=ref, shape=shape,
-                     field=_field(transforms, shape), correlation=correlation, failed=failed)
+                     field=_field(transforms, shape), correlation=correlation, failed=failed,
+                     noise_sigma=float(np.median(sigmas)) if sigmas else 0.0)
 
 
 def _field(transforms: list[np.ndarray], shape: tuple[int, int]) -> np.ndarray:

@@ -116,6 +116,20 @@ class FocusOperator(str, Enum):
         return 1.0 if self.value in _AMPLITUDE else 2.0
 
     @property
+    def magnification_exponent(self) -> float:
+        """Exponent k such that F of a frame magnified by m changes as m^(−k).
+
+        An image of the same (equally blurred) scene at a magnification m times larger is
+        g(x / m): its d-th derivatives shrink by m^(−d), so a derivative operator's
+        response shrinks by m^(−d) (amplitude) or m^(−2d) (energy). A lens that is not
+        telecentric changes m from frame to frame, which biases the peak towards the
+        least magnified frame unless each frame's focus is scaled by m_n^k (m_n relative
+        to the reference frame). Statistics and ratio operators are not derivatives:
+        k = 0 (their window also covers a different area, which no factor corrects).
+        """
+        return _DERIVATIVE_ORDER.get(self.value, 0) * self.curve_power
+
+    @property
     def uses_threshold(self) -> bool:
         """True if the operator sums a per-pixel response that ``threshold`` applies to."""
         return self.value in _THRESHOLDED
@@ -141,6 +155,14 @@ _THRESHOLDED = frozenset(
 )
 # Operators that sum absolute values (amplitudes), not squares (energies).
 _AMPLITUDE = frozenset(("lapm", "lapd", "grat", "wavs", "cont", "curv", "hel"))
+# Derivative order of each operator's per-pixel response (magnification_exponent); the
+# unlisted ones (variance, ratio and DCT-ratio operators) are invariant to a uniform scaling.
+_DERIVATIVE_ORDER = {
+    **dict.fromkeys(("sml", "lape", "lapm", "lapd", "lapv", "curv"), 2),
+    **dict.fromkeys(("ten", "gder", "grae", "grat", "wavs", "wavv", "bren", "cont", "sfil",
+                     "vol4"), 1),
+    "tenv": 2,  # variance of the squared gradient: 4th power of a first derivative
+}
 # Ratio operators: a negative grey level makes them meaningless.
 _NEEDS_NON_NEGATIVE = frozenset(("glvn", "cheb", "wavr", "dcte", "dctr", "hel"))
 # Variance operators (glvn is a variance over a mean): a 1-px window makes them 0.
@@ -155,6 +177,7 @@ def _k(rows) -> np.ndarray:
 
 
 _K_XX = _k([[1, -2, 1]])  # ∂²/∂x², step 1
+_K_IMMERKAER = _k([[1, -2, 1], [-2, 4, -2], [1, -2, 1]])  # noise_sigma
 _K_YY = np.ascontiguousarray(_K_XX.T)
 _K_UU = _k([[1, 0, 0], [0, -2, 0], [0, 0, 1]]) * 0.5  # ∂² along a diagonal (step √2)
 _K_VV = _k([[0, 0, 1], [0, -2, 0], [1, 0, 0]]) * 0.5
@@ -850,3 +873,32 @@ def focus_measure(frame, *, operator="sml", window_px=9, threshold=0.0) -> np.nd
                 f"minimum of {low:g}"
             )
     return _OPERATORS[name](g, window_px, float(threshold))
+
+
+def noise_sigma(frame: np.ndarray) -> float:
+    """Standard deviation of a frame's white sensor noise (Immerkær 1996).
+
+    The 3x3 mask [[1, −2, 1], [−2, 4, −2], [1, −2, 1]] cancels every linear and quadratic
+    intensity pattern; for white noise of σ its response has E|·| = σ·6·√(2/π), so
+    σ ≈ √(π/2)/6 · mean|g ⋆ mask| over the interior. Texture and edges leak in, so on a
+    sharp, textured frame this overestimates σ; on defocused frames it is close.
+    """
+    g = _as_float32(frame)
+    if min(g.shape) < 3:
+        return 0.0
+    r = _filter(g, _K_IMMERKAER)[1:-1, 1:-1]
+    return float(np.sqrt(np.pi / 2) / 6.0 * np.mean(np.abs(r), dtype=np.float64))
+
+
+@lru_cache(maxsize=64)
+def noise_focus(operator: str, window_px: int, threshold: float = 0.0) -> float:
+    """Median focus measure of white noise of σ = 1 (grey levels) around a mid grey.
+
+    An energy operator's noise response scales as σ², an amplitude one's as σ
+    (``FocusOperator.curve_power``); with a threshold the scaling is only approximate.
+    """
+    rng = np.random.default_rng(0)
+    g = (128.0 + rng.standard_normal((96, 96))).astype(np.float32)
+    f = focus_measure(g, operator=operator, window_px=window_px, threshold=threshold)
+    m = window_px // 2 + 4
+    return float(np.median(f[m:-m, m:-m]))

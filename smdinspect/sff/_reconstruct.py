@@ -17,7 +17,7 @@ from ._align import Alignment, estimate_alignment
 from ._config import FitMethod, FocusConfig
 from ._confidence import confidence_map, depth_edge_mask, halo_mask
 from ._depth import PeakTracker, fit_peaks
-from ._focus import FocusOperator, focus_measure
+from ._focus import FocusOperator, focus_measure, noise_focus
 from ._surface import Surface
 
 __all__ = ["reconstruct", "to_gray"]
@@ -80,6 +80,7 @@ def reconstruct(
         log.info("aligned %d frames onto frame %d (the most magnified); field %.1f %% of it",
                  n, alignment.reference, 100 * alignment.field.mean())
     first = stack.frames[0].path
+    operator = FocusOperator(config.operator)
 
     def load(i: int):
         image = stack.read_frame(i)
@@ -87,13 +88,23 @@ def reconstruct(
         mean = float(gray.mean())
         # Same mean grey in every frame: exposure drift, flicker and auto-gain change the
         # focus measure, defocus does not change the mean (blur conserves light).
+        norm = MEAN_GREY / mean if mean > 0 else 1.0
         if mean > 0:
-            gray = gray * np.float32(MEAN_GREY / mean)
+            gray = gray * np.float32(norm)
         focus = focus_measure(gray, operator=config.operator, window_px=config.window_px,
                               threshold=config.threshold)
         if alignment is not None:
             if image.shape[:2] != alignment.shape:
                 raise _mismatch(stack.frames[i].path, image.shape, first, alignment.shape)
+            gain = alignment.scale(i) ** operator.magnification_exponent
+            if gain != 1.0:
+                # The same texture seen less magnified has steeper derivatives: scale the
+                # scene's part of the focus, not the sensor noise's (which is per pixel).
+                noise = noise_focus(operator.value, config.window_px, config.threshold) \
+                    * (alignment.noise_sigma * norm) ** operator.curve_power
+                focus -= np.float32(noise)
+                focus *= np.float32(gain)
+                focus += np.float32(noise)
             focus = alignment.warp(focus, i)
             image = alignment.warp(image, i)
         return image, focus
@@ -128,7 +139,7 @@ def reconstruct(
 
     tracker.finish()
     fit = fit_peaks(tracker, z_mm, method=config.fit, workers=config.workers,
-                    power=FocusOperator(config.operator).curve_power)
+                    power=operator.curve_power)
     confidence = confidence_map(fit, window_px=config.window_px)
     meta: dict = {}
     field = np.ones(tracker.shape, bool)
