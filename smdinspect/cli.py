@@ -28,7 +28,7 @@ log = logging.getLogger(__name__)
 
 # One module per subcommand in smdinspect/_cli/, each with register(subparsers),
 # which adds its parser and sets ``func`` to a callable(args) -> int.
-COMMANDS = ("demo", "simulate", "acquire", "reconstruct", "inspect", "batch")
+COMMANDS = ("demo", "simulate", "acquire", "reconstruct", "inspect", "batch", "board", "calibrate", "grr")
 
 
 def build_parser() -> argparse.ArgumentParser:

@@ -26,7 +26,8 @@ def register(sub: argparse._SubParsersAction) -> None:
                     "joints.csv, junit.xml and report.html. Exit 0: all joints pass; "
                     "1: defects; 2: bad input; 3: board not located.")
     add_stack_arguments(p)
-    p.add_argument("--board", required=True, type=Path, help="reference board file (JSON)")
+    p.add_argument("--board", required=True, type=Path,
+                   help="reference board file (JSON), or a .kicad_pcb / centroid file")
     p.add_argument("--out", required=True, type=Path, help="output directory")
     p.add_argument("--inspect-config", type=Path, default=None, metavar="JSON",
                    help="JSON file of InspectConfig settings (see the README, 'Inspection')")
@@ -56,13 +57,13 @@ def inspect_config_from(args: argparse.Namespace):
 
 
 def run(args: argparse.Namespace) -> int:
+    from ..cad import load_any_board
     from ..cli import progress_callback
-    from ..inspect import load_board
     from ..pipeline import inspect_stack, is_reconstruction, load_reconstruction
     from ..stack import open_stack
     from .reconstruct import focus_config_from
 
-    board = load_board(args.board)
+    board = load_any_board(args.board)  # a board JSON, or a CAD file imported on the fly
     config = inspect_config_from(args)
     if len(args.stack) == 1 and is_reconstruction(args.stack[0]):
         stack = load_reconstruction(args.stack[0], pixel_size_mm=args.pixel_size_mm)
