@@ -449,15 +449,18 @@ def register_board(
     if not (fit >= cfg.min_fitness):
         reasons.append(f"fitness {fit:.2f} < {cfg.min_fitness} (measured parts do not lie on "
                        f"the reference surface)")
-    if not (rmse <= cfg.max_rmse_mm):
-        reasons.append(f"inlier RMSE {rmse * 1000:.1f} um > {cfg.max_rmse_mm * 1000:.0f} um")
+    if not math.isfinite(rmse):
+        reasons.append(f"no measured point lies within {cfg.icp_distance_mm * 1000:.0f} µm of "
+                       "the reference surface (no inlier RMSE)")
+    elif rmse > cfg.max_rmse_mm:
+        reasons.append(f"inlier RMSE {rmse * 1000:.1f} µm > {cfg.max_rmse_mm * 1000:.0f} µm")
     offset = apply2d(T_final, centre_board[None])[0] - centre_img
     result = RegistrationResult(
         transform=T_final, fitness=float(fit), rmse_mm=float(rmse), converged=not reasons,
         method=method, reason="; ".join(reasons), score=float(score),
         offset_mm=(float(offset[0]), float(offset[1])), meta=meta)
     log.info("registration %s: rotation %.3f deg, offset (%.3f, %.3f) mm, score %.3f, "
-             "fitness %.3f, rmse %.1f um%s", method, result.rotation_deg, *result.offset_mm,
+             "fitness %.3f, rmse %.1f µm%s", method, result.rotation_deg, *result.offset_mm,
              score, fit, rmse * 1000, "" if not reasons else " -- NOT LOCATED: " + result.reason)
     return result
 

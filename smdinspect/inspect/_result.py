@@ -201,7 +201,7 @@ class InspectionResult:
             f"{c['unreliable']} unreliable -> {'PASS' if self.passed else 'FAIL'}",
             f"registration: {reg.method}, rotation {reg.rotation_deg:+.2f} deg, board centre "
             f"offset ({reg.offset_mm[0]:+.3f}, {reg.offset_mm[1]:+.3f}) mm, score "
-            f"{reg.score:.2f}, fitness {reg.fitness:.2f}, rmse {reg.rmse_mm * 1000:.1f} um",
+            f"{reg.score:.2f}, fitness {reg.fitness:.2f}, rmse {reg.rmse_mm * 1000:.1f} µm",
         ]
         for j in self.joints:
             if j.verdict is not Verdict.OK:

@@ -56,7 +56,7 @@ __all__ = ["judge_component", "judge_joint"]
 
 
 def _um(x: float) -> str:
-    return f"{x * 1000:.0f} um" if math.isfinite(x) else "n/a"
+    return f"{x * 1000:.0f} µm" if math.isfinite(x) else "n/a"
 
 
 def judge_component(comp, m: ComponentMeasurement, config: InspectConfig) -> ComponentResult:
