@@ -52,10 +52,14 @@ def register(sub: argparse._SubParsersAction) -> None:
                        description="Measure every pixel's height by shape from focus.")
     add_stack_arguments(p)
     p.add_argument("--out", required=True, type=Path, help="output directory")
+    p.add_argument("--calibration", type=Path, default=None, metavar="CAL_JSON",
+                   help="rig calibration (smdinspect calibrate): subtract its focal-plane "
+                        "tilt/curvature")
     p.set_defaults(func=run)
 
 
 def run(args: argparse.Namespace) -> int:
+    from ..calibrate import apply_calibration_file
     from ..cli import progress_callback
     from ..sff import reconstruct, write_reconstruction
     from ..stack import open_stack
@@ -65,6 +69,7 @@ def run(args: argparse.Namespace) -> int:
     if stack.pixel_size_mm is None:
         log.warning("pixel size unknown (give --pixel-size-mm): x and y are written in pixels")
     surface = reconstruct(stack, config, progress=progress_callback(args, "focus"))
+    surface = apply_calibration_file(surface, args.calibration)
     # Write into a sibling temporary folder, then move the files in: an error while
     # writing leaves OUT_DIR as it was.
     args.out.mkdir(parents=True, exist_ok=True)

@@ -1,0 +1,129 @@
+"""``smdinspect calibrate pixel-size | flat``: rig calibration into a calibration file."""
+
+from __future__ import annotations
+
+import argparse
+import logging
+from pathlib import Path
+
+log = logging.getLogger(__name__)
+
+
+def _rig_pixel_size(rig: Path | None) -> float | None:
+    if rig is None:
+        return None
+    import tomllib
+
+    from ..errors import InputError
+
+    try:
+        doc = tomllib.loads(rig.read_text(encoding="utf-8"))
+    except OSError as exc:
+        raise InputError(f"--rig {rig}: cannot read: {exc.strerror or exc}") from None
+    except tomllib.TOMLDecodeError as exc:
+        raise InputError(f"--rig {rig}: not valid TOML: {exc}") from None
+    value = (doc.get("camera") or {}).get("pixel_size_mm")
+    return float(value) if isinstance(value, (int, float)) else None
+
+
+def _default_out(args: argparse.Namespace) -> Path:
+    from ..errors import InputError
+
+    if args.out is not None:
+        return args.out
+    if args.rig is not None:
+        return args.rig.with_name(args.rig.stem + ".cal.json")
+    raise InputError("give --out (or --rig: the calibration then goes to RIG.cal.json)")
+
+
+def register(sub: argparse._SubParsersAction) -> None:
+    from ..calibrate import TargetKind
+    from .reconstruct import add_stack_arguments
+
+    p = sub.add_parser("calibrate", help="rig calibration: pixel size, focal-plane tilt/curvature",
+                       description="Calibrate a rig; results go to a calibration file "
+                                   "(rig.cal.json) that reconstruct --calibration applies.")
+    csub = p.add_subparsers(dest="calibrate_command", metavar="ACTION", required=True)
+    px = csub.add_parser("pixel-size", help="pixel size + lens distortion from a target image",
+                         description="Detect a checkerboard or dot-grid target of known pitch "
+                                     "and report the object-side pixel size, the fit residual "
+                                     "and the radial lens distortion.")
+    px.add_argument("image", type=Path, metavar="TARGET_IMAGE")
+    px.add_argument("--pitch-mm", type=float, required=True,
+                    help="dot pitch or checkerboard square size (mm)")
+    px.add_argument("--target", default="auto", choices=[t.value for t in TargetKind],
+                    help="target pattern (default auto)")
+    px.add_argument("--rig", type=Path, default=None, help="rig file (TOML)")
+    px.add_argument("--out", type=Path, default=None,
+                    help="calibration file to write or update (default RIG.cal.json)")
+    px.add_argument("--update-rig", action="store_true",
+                    help="also write the pixel size into the rig file's [camera] table")
+    px.add_argument("--no-distortion", action="store_true", help="fit an affine grid only")
+    px.set_defaults(func=run_pixel_size)
+
+    fl = csub.add_parser("flat", help="focal-plane tilt + field curvature from a flat-target sweep",
+                         description="Reconstruct a sweep of a flat textured target, fit its "
+                                     "height map with a low-order 2D polynomial and store it as "
+                                     "the correction reconstruct --calibration subtracts.")
+    add_stack_arguments(fl)
+    fl.add_argument("--rig", type=Path, default=None,
+                    help="rig file (TOML): pixel size when the stack has none")
+    fl.add_argument("--out", type=Path, default=None,
+                    help="calibration file to write or update (default RIG.cal.json)")
+    fl.add_argument("--degree", type=int, default=2,
+                    help="polynomial degree: 1 tilt only, 2 tilt + curvature (default), up to 4")
+    fl.set_defaults(func=run_flat)
+
+
+def run_pixel_size(args: argparse.Namespace) -> int:
+    from ..calibrate import pixel_size_from_image, set_rig_pixel_size, write_calibration
+    from ..errors import InputError
+    from ..stack import read_image
+
+    if not args.image.is_file():
+        raise InputError(f"target image {str(args.image)!r} does not exist")
+    out = _default_out(args)
+    before = _rig_pixel_size(args.rig)
+    image = read_image(args.image)
+    result = pixel_size_from_image(image, pitch_mm=args.pitch_mm, target=args.target,
+                                   distortion=not args.no_distortion)
+    print(result.summary())
+    write_calibration(out, pixel_size=result)
+    print(f"calibration: {out}")
+    if args.update_rig:
+        if args.rig is None:
+            raise InputError("--update-rig needs --rig")
+        set_rig_pixel_size(args.rig, result.pixel_size_mm)
+        was = f"{before:g}" if before is not None else "unset"
+        print(f"{args.rig.name}: [camera] pixel_size_mm {was} → {result.pixel_size_mm:.6g}")
+    elif before is not None:
+        change = 100.0 * (result.pixel_size_mm / before - 1.0)
+        print(f"the rig file says {before:g} mm ({change:+.2f} %); --update-rig writes the "
+              f"measured value")
+    return 0
+
+
+def run_flat(args: argparse.Namespace) -> int:
+    from ..calibrate import apply_calibration, calibrate_flat, write_calibration
+    from ..cli import progress_callback
+    from ..sff import reconstruct
+    from ..stack import open_stack
+    from .reconstruct import focus_config_from
+
+    out = _default_out(args)
+    pixel = args.pixel_size_mm
+    stack = open_stack(args.stack, step_mm=args.step_mm, pixel_size_mm=pixel)
+    if stack.pixel_size_mm is None:
+        pixel = _rig_pixel_size(args.rig)
+        if pixel is not None:
+            stack = open_stack(args.stack, step_mm=args.step_mm, pixel_size_mm=pixel)
+    surface = reconstruct(stack, focus_config_from(args), progress=progress_callback(args, "focus"))
+    cal = calibrate_flat(surface, degree=args.degree)
+    print(cal.summary())
+    check = calibrate_flat(apply_calibration(surface, cal), degree=args.degree)
+    print(f"after the correction: tilt "
+          + (f"{check.tilt_deg:.4f}°" if check.tilt_deg is not None else "n/a")
+          + f", sag {check.curvature_sag_mm * 1000:.2f} µm")
+    write_calibration(out, focal_plane=cal)
+    print(f"calibration: {out} (apply with: smdinspect reconstruct STACK --calibration {out})")
+    return 0
