@@ -71,11 +71,80 @@ def stacks(tmp_path_factory) -> Path:
     return root
 
 
+class _Events:
+    """A ``board_progress`` callback that records what it is told (thread-safe)."""
+
+    def __init__(self):
+        import threading
+
+        self.lock = threading.Lock()
+        self.events: list[tuple[str, str, int, int]] = []
+
+    def __call__(self, stack, stage, done, total):
+        with self.lock:
+            self.events.append((stack, stage, done, total))
+
+    def of(self, stack):
+        return [e[1:] for e in self.events if e[0] == stack]
+
+
 @pytest.fixture(scope="module")
-def pool_run(stacks, tmp_path_factory):
+def pool_events():
+    return _Events()
+
+
+@pytest.fixture(scope="module")
+def pool_run(stacks, tmp_path_factory, pool_events):
     """The reference: the four boards through the local process pool (2 workers)."""
     out = tmp_path_factory.mktemp("pool") / "reports"
-    return run_batch(stacks, BOARD, out, workers=2)
+    return run_batch(stacks, BOARD, out, workers=2, board_progress=pool_events)
+
+
+def _check_progress(events: _Events, names, *, skipped=()):
+    """Every board moved frame by frame to its last frame, then was inspected, then
+    ended exactly once (``done``, or ``skipped`` without any stage)."""
+    for name in names:
+        ev = events.of(name)
+        end = [e for e in ev if e[0] in ("done", "skipped")]
+        assert end == [("skipped" if name in skipped else "done", 1, 1)], ev
+        if name in skipped:
+            assert ev == end
+            continue
+        frames = [e for e in ev if e[0] == "reconstruct"]
+        n = frames[0][2]
+        assert n == 23 and frames[0][1] == 0  # the demo stacks have 23 frames
+        assert [f[1] for f in frames] == sorted(f[1] for f in frames)
+        assert frames[-1][1] == n  # (small boards: the in-between frames are throttled)
+        assert ("inspect", 0, 1) in ev
+        assert ev.index(("inspect", 0, 1)) > ev.index(frames[-1])
+
+
+def test_board_progress_is_throttled_not_lost(monkeypatch):
+    """Per-frame messages at most every 0.2 s, the first and last frame always; the
+    ``inspect`` stage always; a failing sink never reaches the board."""
+    from smdinspect._batch import _job
+
+    clock = [100.0]
+    monkeypatch.setattr(_job.time, "monotonic", lambda: clock[0])
+    sent = []
+    monkeypatch.setattr(_job, "_progress_sink", sent.append)
+    job = _job.BoardJob(name="b", stack_dir="/x", out_dir="/y", board=None,
+                        board_sha256="", settings={})
+    report = _job._reporter(job)
+    for i in range(11):
+        report("reconstruct", i, 10)
+        clock[0] += 0.0625  # 16 frames/s: every 4th frame gets through
+    report("inspect", 0, 1)
+    assert [m[2] for m in sent if m[1] == "reconstruct"] == [0, 4, 8, 10]
+    assert sent[-1] == ("b", "inspect", 0, 1)
+
+    def broken(msg):
+        raise BrokenPipeError
+
+    monkeypatch.setattr(_job, "_progress_sink", broken)
+    _job._reporter(job)("inspect", 0, 1)  # no exception
+    monkeypatch.setattr(_job, "_progress_sink", None)
+    assert _job._reporter(job) is None
 
 
 def _report(path: Path, *, drop: tuple[str, ...] = ()) -> dict:
@@ -105,6 +174,53 @@ def _summary_rows(out: Path) -> dict[str, dict]:
 
 
 # -- the local pool ------------------------------------------------------------------
+
+
+def test_pool_batch_progress_moves_within_each_board(pool_run, pool_events):
+    _check_progress(pool_events, BOARDS)
+
+
+def test_batch_progress_bar_shows_boards_stages_and_no_rate():
+    from smdinspect._cli.batch import BatchProgress
+
+    bar = BatchProgress(disable=True)
+    bar.boards(0, 3)
+    assert bar.position() == 0 and "0/3 boards done; starting workers" == bar.status()
+    bar.board("b1", "reconstruct", 10, 20)
+    bar.board("b2", "reconstruct", 0, 20)
+    assert bar.position() == pytest.approx(0.5 * bar.RECONSTRUCT_SHARE)
+    assert bar.status() == "0/3 boards done; b1: frame 10/20; b2: frame 0/20"
+    bar.board("b1", "inspect", 0, 1)
+    assert "b1: measuring + writing reports" in bar.status()
+    bar.board("b1", "done", 1, 1)
+    bar.boards(1, 3)
+    bar.board("b1", "reconstruct", 20, 20)  # late message: ignored
+    assert bar.position() == pytest.approx(1.0)
+    bar.board("b3", "skipped", 1, 1)
+    bar.boards(2, 3)
+    assert bar.n_skip_fast == 1 and bar.position() == pytest.approx(2.0)
+    bar.close()
+
+
+def test_batch_progress_bar_draws(tmp_path):
+    """A real tqdm bar into a file: the postfix moves, no "/s" rate appears."""
+    from smdinspect._cli.batch import BatchProgress
+
+    with open(tmp_path / "bar.txt", "w") as fh:
+        bar = BatchProgress(file=fh)
+        bar._open = lambda: None  # tqdm(disable=None) stays off on a non-TTY: force it
+        from tqdm import tqdm
+
+        bar.bar = tqdm(total=2, file=fh, bar_format=bar.BAR_FORMAT)
+        bar.boards(0, 2)
+        for done in (5, 10):
+            bar._last_draw = 0.0  # no redraw throttling here
+            bar.board("b1", "reconstruct", done, 10)
+        bar.close()
+    text = (tmp_path / "bar.txt").read_text()
+    assert "| 0/2 boards done; b1: frame 5/10 [" in text and "b1: frame 10/10" in text
+    assert "/s" not in text and "boards done; starting workers" in text
+    assert " 18%|" in text and " 35%|" in text  # half of a board's reconstruct share (0.7) of 1 board in 2
 
 
 def test_pool_batch_reports_every_board(pool_run, stacks):
@@ -182,15 +298,101 @@ def test_batch_report_is_the_pipeline_report(pool_run, stacks, tmp_path):
 # -- Dask ----------------------------------------------------------------------------
 
 
-def test_dask_local_cluster_gives_the_pool_reports(pool_run, stacks, tmp_path):
-    from distributed import LocalCluster
+def _pem_files(folder: Path, names=("ca", "scheduler", "worker", "client", "rogue")) -> dict:
+    """A CA and certificates it signed (PEM; ``rogue`` is self-signed, not by the CA)."""
+    import datetime
 
+    from cryptography import x509
+    from cryptography.hazmat.primitives import hashes, serialization
+    from cryptography.hazmat.primitives.asymmetric import ec
+    from cryptography.x509.oid import NameOID
+
+    folder.mkdir(parents=True, exist_ok=True)
+    now = datetime.datetime.now(datetime.timezone.utc)
+
+    def make(cn, issuer_key=None, issuer_name=None, ca=False):
+        key = ec.generate_private_key(ec.SECP256R1())
+        name = x509.Name([x509.NameAttribute(NameOID.COMMON_NAME, cn)])
+        cert = (x509.CertificateBuilder().subject_name(name)
+                .issuer_name(issuer_name or name).public_key(key.public_key())
+                .serial_number(x509.random_serial_number())
+                .not_valid_before(now - datetime.timedelta(minutes=5))
+                .not_valid_after(now + datetime.timedelta(days=1))
+                .add_extension(x509.BasicConstraints(ca=ca, path_length=None), critical=True)
+                .sign(issuer_key or key, hashes.SHA256()))
+        return key, cert
+
+    files = {}
+
+    def write(tag, key, cert):
+        (folder / f"{tag}.pem").write_bytes(cert.public_bytes(serialization.Encoding.PEM))
+        (folder / f"{tag}.key").write_bytes(key.private_bytes(
+            serialization.Encoding.PEM, serialization.PrivateFormat.PKCS8,
+            serialization.NoEncryption()))
+        files[tag] = (folder / f"{tag}.pem", folder / f"{tag}.key")
+
+    ca_key, ca_cert = make("smdinspect test CA", ca=True)
+    write("ca", ca_key, ca_cert)
+    for tag in names[1:]:
+        if tag == "rogue":
+            write(tag, *make("rogue"))
+        else:
+            write(tag, *make(tag, ca_key, ca_cert.subject))
+    return files
+
+
+@pytest.fixture
+def tls_cluster(tmp_path):
+    """A real TLS Dask cluster on 127.0.0.1: ``dask scheduler`` and ``dask worker``
+    (2 single-threaded worker processes) started with CA-signed certificates."""
+    pem = _pem_files(tmp_path / "pki")
+    ca = str(pem["ca"][0])
+    dask_cli = [PY, "-m", "dask"]  # the `dask` command of this environment
+    sched_file = tmp_path / "scheduler.json"
+    sched = subprocess.Popen(
+        dask_cli + ["scheduler", "--host", "127.0.0.1", "--port", "0", "--protocol", "tls",
+                    "--no-dashboard", "--scheduler-file", str(sched_file), "--tls-ca-file", ca,
+                    "--tls-cert", str(pem["scheduler"][0]), "--tls-key", str(pem["scheduler"][1])],
+        cwd=REPO, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
+    procs = [sched]
+    try:
+        deadline = time.monotonic() + 60
+        while not sched_file.exists() or not sched_file.read_text().strip():
+            assert sched.poll() is None and time.monotonic() < deadline, "no scheduler"
+            time.sleep(0.2)
+        address = json.loads(sched_file.read_text())["address"]
+        procs.append(subprocess.Popen(
+            dask_cli + ["worker", address, "--nworkers", "2", "--nthreads", "1",
+                        "--host", "127.0.0.1", "--no-dashboard",
+                        "--local-directory", str(tmp_path / "worker-scratch"),
+                        "--tls-ca-file", ca, "--tls-cert", str(pem["worker"][0]),
+                        "--tls-key", str(pem["worker"][1])],
+            cwd=REPO, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL))
+        yield address, pem
+    finally:
+        for p in reversed(procs):
+            p.terminate()
+        for p in reversed(procs):
+            try:
+                p.wait(20)
+            except subprocess.TimeoutExpired:
+                p.kill()
+                p.wait()
+
+
+def test_dask_tls_cluster_gives_the_pool_reports(pool_run, stacks, tmp_path, tls_cluster):
+    from smdinspect.batch import DaskTLS
+
+    address, pem = tls_cluster
+    assert address.startswith("tls://127.0.0.1:")
+    ca = pem["ca"][0]
+    events = _Events()
     out = tmp_path / "reports"
-    with LocalCluster(n_workers=2, threads_per_worker=1, processes=True, host="127.0.0.1",
-                      dashboard_address=None,  # and its HTTP endpoint on a free port:
-                      scheduler_kwargs={"dashboard_address": "127.0.0.1:0"}) as cluster:
-        res = run_batch(stacks, BOARD, out, scheduler=cluster.scheduler_address)
-    assert res.executor.startswith("dask(tcp://127.0.0.1:")
+    res = run_batch(stacks, BOARD, out, scheduler=address, board_progress=events,
+                    tls=DaskTLS(ca_file=ca, cert_file=pem["client"][0],
+                                key_file=pem["client"][1]))
+    assert res.executor == f"dask({address})"
+    _check_progress(events, BOARDS)
     assert res.exit_code == pool_run.exit_code
     for b, ref in zip(res.boards, pool_run.boards):
         assert (b.stack, b.status, b.exit_code, b.joints, b.defects, b.unreliable, b.reason,
@@ -205,6 +407,167 @@ def test_dask_local_cluster_gives_the_pool_reports(pool_run, stacks, tmp_path):
         for k in ("status", "exit_code", "joints", "defects", "unreliable", "reason", "skipped"):
             assert rows[name][k] == ref_rows[name][k]
     assert _leftovers(out) == []
+
+    # the CLI reaches the same cluster with the same files (every board unchanged)
+    from smdinspect import cli
+
+    code = cli.main(["-q", "batch", str(stacks), "--board", str(BOARD), "--out", str(out),
+                     "--scheduler", address, "--tls-ca-file", str(ca),
+                     "--tls-cert", str(pem["client"][0]), "--tls-key", str(pem["client"][1])])
+    assert code == pool_run.exit_code
+    assert json.loads((out / "summary.json").read_text())["counts"]["skipped"] == len(BOARDS)
+
+    # without a certificate the CA signed, nobody gets in
+    from smdinspect._batch import dask_client
+
+    with pytest.raises(InputError, match="uses TLS: give its CA file"):
+        with dask_client(scheduler=address):
+            pass
+    rogue = DaskTLS(ca_file=ca, cert_file=pem["rogue"][0], key_file=pem["rogue"][1])
+    with pytest.raises(InputError, match="cannot connect to the Dask scheduler"):
+        with dask_client(scheduler=address, tls=rogue, connect_timeout_s=5):
+            pass
+    with pytest.raises(InputError, match="cannot connect"):
+        with dask_client(scheduler=address.replace("tls://", "tcp://"), connect_timeout_s=5):
+            pass
+    with pytest.raises(InputError, match="not tls://"):
+        with dask_client(scheduler=address.replace("tls://", "tcp://"),
+                         tls=DaskTLS(ca_file=ca, cert_file=pem["client"][0],
+                                     key_file=pem["client"][1])):
+            pass
+    with pytest.raises(InputError, match="TLS cert file not found"):
+        DaskTLS(ca_file=ca, cert_file=tmp_path / "nope.pem")
+    assert cli.main(["-q", "batch", str(stacks), "--board", str(BOARD), "--out",
+                     str(tmp_path / "o2"), "--dask-local", "1", "--tls-ca-file", str(ca),
+                     "--tls-cert", str(ca)]) == 2
+    assert not (tmp_path / "o2").exists()
+
+
+_LOCAL_CLUSTER_SCRIPT = """
+import json, sys
+from smdinspect._batch import dask_client
+
+def main():
+    with dask_client(local_workers=2) as (client, where):
+        info = client.scheduler_info()
+        print(json.dumps({
+            "where": where,
+            "address": client.scheduler.address,
+            "workers": sorted(info["workers"]),
+            "nannies": sorted(w["nanny"] for w in info["workers"].values()),
+            "http": [info["services"]["dashboard"]]
+                    + [w["services"]["dashboard"] for w in info["workers"].values()],
+            "worker_dirs": sorted(client.run(lambda dask_worker: dask_worker.local_directory)
+                                  .values()),
+            "scheduler_dir": client.run_on_scheduler(
+                lambda dask_scheduler: dask_scheduler.local_directory),
+            "own_client_runs": client.run_on_scheduler(lambda: 41) + 1,
+        }), flush=True)
+        sys.stdin.readline()  # the test probes the cluster meanwhile
+
+if __name__ == "__main__":
+    main()
+"""
+
+_INTRUDER_SCRIPT = """
+import json, os, socket, ssl, sys
+from distributed import Client
+from distributed.security import Security
+
+def try_client(address, **kw):
+    try:
+        c = Client(address, timeout="4s", **kw)
+    except Exception as exc:
+        return "refused: " + type(exc).__name__
+    try:
+        return "RAN CODE ON THE SCHEDULER: pid %d" % c.run_on_scheduler(os.getpid)
+    finally:
+        c.close()
+
+def raw_tls(address):
+    host, port = address.split("://")[1].rsplit(":", 1)
+    ctx = ssl.SSLContext(ssl.PROTOCOL_TLS_CLIENT)
+    ctx.check_hostname, ctx.verify_mode = False, ssl.CERT_NONE
+    try:
+        with socket.create_connection((host, int(port)), timeout=4) as raw:
+            with ctx.wrap_socket(raw) as s:
+                s.sendall(b"\\x00" * 64)
+                data = s.recv(64)
+                return "refused: closed" if not data else "GOT DATA"
+    except (ssl.SSLError, OSError) as exc:
+        return "refused: " + type(exc).__name__
+
+def main():
+    info = json.loads(sys.argv[1])
+    out = {}
+    for kind in ("address", "workers", "nannies"):
+        addrs = [info["address"]] if kind == "address" else info[kind]
+        for a in addrs:
+            out[f"{kind} {a} no security"] = try_client(a)
+            out[f"{kind} {a} tcp"] = try_client(a.replace("tls://", "tcp://"))
+            out[f"{kind} {a} other cert"] = try_client(a, security=Security.temporary())
+            out[f"{kind} {a} raw tls"] = raw_tls(a)
+    print(json.dumps(out))
+
+if __name__ == "__main__":
+    main()
+"""
+
+
+@pytest.mark.skipif(not sys.platform.startswith("linux"), reason="POSIX modes")
+def test_dask_local_cluster_is_private(tmp_path):
+    """--dask-local: mutual TLS with a per-run certificate (another local process cannot
+    connect to the scheduler, a worker or a nanny, let alone run code), scratch in a
+    private 0700 folder (never $TMPDIR/dask-scratch-space), removed afterwards, and
+    only the health check over HTTP."""
+    import stat
+    import urllib.error
+    import urllib.request
+
+    tmpdir = tmp_path / "tmp"
+    tmpdir.mkdir()
+    env = {**os.environ, "TMPDIR": str(tmpdir)}
+    (tmp_path / "cluster.py").write_text(_LOCAL_CLUSTER_SCRIPT)
+    (tmp_path / "intruder.py").write_text(_INTRUDER_SCRIPT)
+    proc = subprocess.Popen([PY, str(tmp_path / "cluster.py")], cwd=REPO, env=env,
+                            stdin=subprocess.PIPE, stdout=subprocess.PIPE,
+                            stderr=subprocess.DEVNULL, text=True)
+    try:
+        line = proc.stdout.readline()
+        assert line, "the local cluster did not start"
+        info = json.loads(line)
+        assert info["where"] == "dask-local(2 workers, tls)"
+        assert info["own_client_runs"] == 42  # the batch's own client is let in
+        assert info["address"].startswith("tls://127.0.0.1:")
+        assert all(a.startswith("tls://127.0.0.1:") for a in info["workers"] + info["nannies"])
+        # private scratch: one 0700 folder of ours in $TMPDIR, nothing else there
+        top = list(tmpdir.iterdir())
+        assert len(top) == 1 and top[0].name.startswith("smdinspect-dask-"), top
+        assert stat.S_IMODE(top[0].stat().st_mode) == 0o700
+        assert not (tmpdir / "dask-scratch-space").exists()
+        for d in info["worker_dirs"] + [info["scheduler_dir"]]:
+            assert Path(d).resolve().is_relative_to(top[0].resolve()), d
+        # another process (no certificate of this run) is refused everywhere
+        run = subprocess.run([PY, str(tmp_path / "intruder.py"), line], cwd=REPO,
+                             capture_output=True, text=True, timeout=180)
+        probes = json.loads(run.stdout.strip().splitlines()[-1])
+        assert len(probes) == 4 * 5  # 4 ways into the scheduler, 2 workers, 2 nannies
+        assert all(v.startswith("refused") for v in probes.values()), probes
+        # HTTP: the health check only, no task/worker/log pages or metrics
+        for port in info["http"]:
+            with urllib.request.urlopen(f"http://127.0.0.1:{port}/health", timeout=5) as r:
+                assert r.read() == b"ok"
+            for path in ("/info/main/workers.html", "/json/counts.json", "/metrics"):
+                with pytest.raises(urllib.error.HTTPError, match="404"):
+                    urllib.request.urlopen(f"http://127.0.0.1:{port}{path}", timeout=5)
+        proc.stdin.write("\n")
+        proc.stdin.flush()
+        assert proc.wait(60) == 0
+        assert list(tmpdir.iterdir()) == []  # the scratch folder went with the cluster
+    finally:
+        if proc.poll() is None:
+            proc.kill()
+            proc.wait()
 
 
 # -- kill and resume -----------------------------------------------------------------
@@ -337,7 +700,7 @@ def test_bad_stacks_fail_only_their_board(pool_run, stacks, tmp_path):
     assert {n for n, e in errors.items() if e is not None} == set(expect)
     assert int(root.get("errors")) == 4
     summary = json.loads((out / "summary.json").read_text())
-    assert summary["executor"] == "dask-local(2 workers)"
+    assert summary["executor"] == "dask-local(2 workers, tls)"
     assert summary["counts"]["error"] == 4 and summary["exit_code"] == 2
     assert _leftovers(out) == []
 

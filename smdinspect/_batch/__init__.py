@@ -13,7 +13,7 @@ from ._job import (
 )
 from ._report import SUMMARY_COLUMNS, merge_junit, write_summary_csv, write_summary_json
 from ._run import BatchResult, batch_exit_code, run_batch
-from ._runners import dask_client, run_dask, run_local
+from ._runners import DaskTLS, dask_client, run_dask, run_local
 
 __all__ = [
     "DONE_MARKER",
@@ -23,6 +23,7 @@ __all__ = [
     "BoardJob",
     "BoardResult",
     "BoardStatus",
+    "DaskTLS",
     "batch_exit_code",
     "clean_leftovers",
     "dask_client",

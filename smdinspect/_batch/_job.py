@@ -10,6 +10,7 @@ from __future__ import annotations
 import importlib
 import json
 import logging
+import math
 import os
 import shutil
 import tempfile
@@ -28,6 +29,7 @@ from ._discover import file_sha256, stack_input_sha256
 __all__ = [
     "DONE_MARKER",
     "ERROR_FILE",
+    "STAGES",
     "BoardJob",
     "BoardResult",
     "BoardStatus",
@@ -35,6 +37,7 @@ __all__ = [
     "read_done_marker",
     "record_error",
     "run_board",
+    "set_progress_sink",
 ]
 
 log = logging.getLogger(__name__)
@@ -53,6 +56,23 @@ OLD_PREFIX = ".smdinspect-old-"
 DEFAULT_INSPECT_FN = "smdinspect.pipeline:inspect_stack"
 _UMASK = os.umask(0)
 os.umask(_UMASK)
+
+#: Stages a running board reports, in order: ``("reconstruct", frame, n_frames)`` per
+#: frame (at most a few per second), then ``("inspect", 0, 1)`` while it is located,
+#: measured and its reports written. Its result ends it.
+STAGES = ("reconstruct", "inspect")
+#: Minimum seconds between two ``reconstruct`` messages of one board.
+_PROGRESS_EVERY_S = 0.2
+
+#: Where :func:`run_board` sends its progress in this process: installed by the local
+#: pool's initializer (a queue's ``put_nowait``); Dask workers use the job's topic.
+_progress_sink: Callable[[tuple[str, str, int, int]], None] | None = None
+
+
+def set_progress_sink(sink: Callable[[tuple[str, str, int, int]], None] | None) -> None:
+    """Send the progress of the boards run in this process to ``sink(message)``."""
+    global _progress_sink
+    _progress_sink = sink
 
 
 class BoardStatus(str, Enum):
@@ -89,6 +109,8 @@ class BoardJob:
     inspect_fn: str = DEFAULT_INSPECT_FN
     #: ``False``: no report.html (passed on as ``html=False``).
     html: bool = True
+    #: Dask event topic the worker sends the board's progress to (empty: none).
+    progress_topic: str = ""
 
     @property
     def threads(self) -> int:
@@ -189,7 +211,7 @@ def run_board(job: BoardJob) -> BoardResult:
                                   f"{exc.strerror or exc}", digest=digest)
     try:
         limit_native_threads(job.threads)
-        result = _inspect_into(job, tmp, t0, digest)
+        result = _inspect_into(job, tmp, t0, digest, _reporter(job))
         try:
             if result.status is BoardStatus.ERROR:
                 _write_error(tmp, job, result)
@@ -225,14 +247,60 @@ def limit_native_threads(threads: int) -> None:
         pass
 
 
-def _inspect_into(job: BoardJob, tmp: Path, t0: float, digest: str) -> BoardResult:
+def _reporter(job: BoardJob) -> Callable[[str, int, int], None] | None:
+    """``report(stage, done, total)`` for this board, or ``None`` when nobody listens.
+
+    Never raises (progress is best effort) and throttles the per-frame messages.
+    """
+    send: Callable[[tuple[str, str, int, int]], None] | None = _progress_sink
+    if job.progress_topic:
+        try:
+            from distributed import get_worker
+
+            worker = get_worker()
+        except (ImportError, ValueError):
+            worker = None
+        if worker is not None:
+            topic = job.progress_topic
+
+            def send(msg: tuple[str, str, int, int]) -> None:
+                worker.log_event(topic, list(msg))
+    if send is None:
+        return None
+    last = [-math.inf]
+
+    def report(stage: str, done: int, total: int) -> None:
+        now = time.monotonic()
+        if stage == "reconstruct" and 0 < done < total and now - last[0] < _PROGRESS_EVERY_S:
+            return
+        last[0] = now
+        try:
+            send((job.name, stage, int(done), int(total)))
+        except Exception:  # a full or closed queue, a closing worker: not the board's fault
+            pass
+
+    return report
+
+
+def _inspect_into(job: BoardJob, tmp: Path, t0: float, digest: str,
+                  report: Callable[[str, int, int], None] | None = None) -> BoardResult:
     """Run the pipeline into ``tmp``; the result (status error on any failure)."""
     try:
         from ..stack import FocalStack
 
         inspect_stack = _resolve(job.inspect_fn)
         stack = FocalStack.open(job.stack_dir)
-        extra = {} if job.html else {"html": False}
+        extra: dict[str, Any] = {} if job.html else {"html": False}
+        if report is not None:
+            n_frames = len(stack)
+            report("reconstruct", 0, n_frames)
+
+            def frames(done: int, total: int) -> None:
+                report("reconstruct", done, total)
+                if done >= total:
+                    report("inspect", 0, 1)
+
+            extra["progress"] = frames
         res = inspect_stack(stack, job.board, tmp, focus_config=job.focus_config,
                             inspect_config=job.inspect_config,
                             keep_unreliable=job.keep_unreliable, **extra)

@@ -16,7 +16,7 @@ from ..errors import InputError
 from ._discover import discover_stacks, file_sha256
 from ._job import DEFAULT_INSPECT_FN, BoardJob, BoardResult, BoardStatus, clean_leftovers
 from ._report import merge_junit, write_summary_csv, write_summary_json
-from ._runners import dask_client, run_dask, run_local
+from ._runners import DaskTLS, dask_client, run_dask, run_local
 
 __all__ = ["BatchResult", "run_batch"]
 
@@ -133,12 +133,14 @@ def run_batch(
     threads: int | None = None,
     scheduler: str | None = None,
     dask_workers: int | None = None,
+    tls: DaskTLS | None = None,
     force: bool = False,
     focus_config: Any = None,
     inspect_config: Any = None,
     keep_unreliable: bool = False,
     html: bool = True,
     progress: Callable[[int, int], None] | None = None,
+    board_progress: Callable[[str, str, int, int], None] | None = None,
     inspect_fn: str = DEFAULT_INSPECT_FN,
 ) -> BatchResult:
     """Inspect every stack under ``stacks_dir`` against one reference board.
@@ -168,19 +170,23 @@ def run_batch(
         The batch's report folder (created). May lie inside ``stacks_dir`` (it is not
         searched) but not contain it.
     workers : int, optional
-        Size of the local process pool (default ``os.cpu_count()``, at most one process
-        per board). Only for the local pool.
+        Number of worker *processes* of the local pool, i.e. boards inspected at once
+        (default ``os.cpu_count()``, at most one per board); the CLI's ``--processes``.
+        Only for the local pool; each process uses ``threads`` threads.
     threads : int, optional
         Threads per board (focus measure, OpenCV, Open3D; replaces
         ``focus_config.workers``). Default: the worker's share of the CPUs,
         ``max(1, cpu_count // pool size)`` in the local pool, 1 on Dask.
     scheduler : str, optional
         Run on an existing Dask distributed cluster at this address
-        (``tcp://HOST:8786``); its workers must import the same smdinspect and see the
-        same paths.
+        (``tcp://HOST:8786``, or ``tls://HOST:8786`` with ``tls``); its workers must
+        import the same smdinspect and see the same paths.
     dask_workers : int, optional
         Run on a Dask ``LocalCluster`` of this many single-threaded worker processes
-        (127.0.0.1, no dashboard) started for this batch.
+        started for this batch: 127.0.0.1, mutual TLS with a certificate generated for
+        the run, a private scratch folder, no dashboard.
+    tls : DaskTLS, optional
+        CA, certificate and key files for a ``tls://`` ``scheduler``.
     force : bool
         Redo every board, even those whose reports are up to date.
     focus_config : smdinspect.sff.FocusConfig, optional
@@ -195,6 +201,12 @@ def run_batch(
         Write each board's ``report.html`` (``False`` is passed on as ``html=False``).
     progress : callable(done, total), optional
         Called with the number of boards finished (skipped ones included).
+    board_progress : callable(stack, stage, done, total), optional
+        Called as each running board moves: ``("reconstruct", frame, n_frames)``, then
+        ``("inspect", 0, 1)`` while it is measured and reported (see
+        :data:`smdinspect._batch._job.STAGES`), possibly from another thread; and, from
+        this thread when its result is in (just before ``progress``), ``("done", 1, 1)``
+        or ``("skipped", 1, 1)``. A late stage call may follow ``done``: ignore it.
     inspect_fn : str
         ``"module:function"`` run per board, with the signature and contract of
         :func:`smdinspect.pipeline.inspect_stack` (the default); it must be importable
@@ -229,6 +241,9 @@ def run_batch(
             raise InputError(f"{name} must be an integer >= 1; got {value!r}")
     if scheduler is not None and (not isinstance(scheduler, str) or not scheduler.strip()):
         raise InputError(f"scheduler must be an address such as tcp://HOST:8786; got {scheduler!r}")
+    if tls is not None and (scheduler is None or not isinstance(tls, DaskTLS)):
+        raise InputError("tls (a DaskTLS of certificate files) is for an existing TLS "
+                         "scheduler; a local Dask cluster makes its own certificate")
 
     stacks_dir = Path(stacks_dir)
     out_dir = Path(out_dir)
@@ -272,7 +287,7 @@ def run_batch(
         client = None
         if on_dask:  # connect first: an unreachable scheduler leaves nothing behind
             client, executor = stack.enter_context(
-                dask_client(scheduler=scheduler, local_workers=dask_workers))
+                dask_client(scheduler=scheduler, local_workers=dask_workers, tls=tls))
         else:
             executor = f"process-pool({pool_size} workers)"
         out_dir.mkdir(parents=True, exist_ok=True)
@@ -296,15 +311,18 @@ def run_batch(
             log.debug("%s: %s (exit %d)%s in %.1f s %s", res.stack, res.status.value,
                       res.exit_code, " skipped, unchanged," if res.skipped else "",
                       res.seconds, res.reason)
+            if board_progress is not None:
+                board_progress(res.stack, "skipped" if res.skipped else "done", 1, 1)
             if progress is not None:
                 progress(len(results), total)
 
         if progress is not None:
             progress(0, total)
         if client is not None:
-            run_dask(jobs, client=client, on_result=on_result)
+            run_dask(jobs, client=client, on_result=on_result, on_progress=board_progress)
         else:
-            run_local(jobs, workers=pool_size, on_result=on_result, threads=threads)
+            run_local(jobs, workers=pool_size, on_result=on_result, threads=threads,
+                      on_progress=board_progress)
 
         clean_leftovers(out_dir)  # folders of crashed workers
         boards = tuple(results[j.name] if j.name in results else _lost(j) for j in jobs)
