@@ -8,6 +8,7 @@ __all__ = [
     "BoardNotLocatedError",
     "CameraError",
     "InputError",
+    "OutputError",
     "RegistrationError",
     "SmdInspectError",
     "StageError",
@@ -24,6 +25,19 @@ class InputError(SmdInspectError, ValueError):
     """Bad input from the user: a file, an argument, a manifest, a board file."""
 
     exit_code = 2
+
+
+class OutputError(SmdInspectError, OSError):
+    """An output could not be written: no space left on the device, no permission.
+
+    Built as ``OutputError(errno.ENOSPC, "no space left on device: PATH")``: ``errno``
+    is kept for callers, the message is the whole text.
+    """
+
+    exit_code = 2
+
+    def __str__(self) -> str:
+        return self.strerror or super().__str__()
 
 
 class StageError(SmdInspectError):

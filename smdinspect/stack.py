@@ -20,12 +20,15 @@ are served in ascending z).
 
 Frames are read one at a time (:meth:`FocalStack.iter_frames`), never all at once.
 Images are returned as stored: ``uint8``/``uint16``/``float32``, grey ``(H, W)`` or RGB
-``(H, W, 3)``; no rescaling.
+``(H, W, 3)``; no rescaling. Every frame of a stack must have the first frame's pixel
+type (8-bit, 16-bit or float): one 16-bit frame among 8-bit ones is an error, not a
+frame that outshines the others.
 """
 
 from __future__ import annotations
 
 import json
+import logging
 import math
 import os
 from dataclasses import dataclass, field
@@ -35,6 +38,7 @@ from typing import Any, Iterator, Sequence
 import numpy as np
 
 from . import _atomic
+from ._json import read_json
 from .errors import InputError
 
 __all__ = [
@@ -52,6 +56,12 @@ FORMAT_NAME = "smdinspect-stack"
 FORMAT_VERSION = 1
 MANIFEST = "stack.json"
 IMAGE_SUFFIXES = (".png", ".tif", ".tiff", ".jpg", ".jpeg", ".bmp")
+#: Accepted object-side pixel sizes (mm): 1 nm to 10 mm.
+PIXEL_SIZE_RANGE_MM = (1e-6, 10.0)
+#: Largest accepted |z_mm| of a frame (mm).
+MAX_ABS_Z_MM = 1e4
+
+log = logging.getLogger(__name__)
 
 
 @dataclass(frozen=True)
@@ -84,6 +94,9 @@ class FocalStack:
     optics: dict[str, Any] = field(default_factory=dict)
     rig: dict[str, Any] = field(default_factory=dict)
     meta: dict[str, Any] = field(default_factory=dict)
+    # pixel type of the first frame decoded, and its path: every frame must match it
+    _first_kind: dict[str, Any] = field(default_factory=dict, init=False, repr=False,
+                                        compare=False)
 
     def __post_init__(self) -> None:
         if len(self.frames) < 3:
@@ -92,12 +105,16 @@ class FocalStack:
         if not np.all(np.isfinite(z)):
             bad = next(f for f in self.frames if not math.isfinite(f.z_mm))
             raise InputError(f"frame {bad.path.name} has a non-finite z_mm: {bad.z_mm}")
+        if np.any(np.abs(z) > MAX_ABS_Z_MM):
+            bad = next(f for f in self.frames if abs(f.z_mm) > MAX_ABS_Z_MM)
+            raise InputError(f"frame {bad.path.name} has z_mm {bad.z_mm:g}; heights must lie "
+                             f"within ±{MAX_ABS_Z_MM:g} mm")
         if np.any(np.diff(z) <= 0):
             raise InputError("frames must be sorted by strictly increasing z_mm")
-        if self.pixel_size_mm is not None and not (
-            math.isfinite(self.pixel_size_mm) and self.pixel_size_mm > 0
-        ):
-            raise InputError(f"pixel_size_mm must be > 0; got {self.pixel_size_mm}")
+        lo, hi = PIXEL_SIZE_RANGE_MM
+        if self.pixel_size_mm is not None and not lo <= self.pixel_size_mm <= hi:
+            raise InputError(f"pixel_size_mm must be between {lo:g} and {hi:g} mm; "
+                             f"got {self.pixel_size_mm:g}")
 
     # -- construction ---------------------------------------------------------------
     @classmethod
@@ -106,14 +123,10 @@ class FocalStack:
         root = Path(root)
         manifest = root / MANIFEST
         if not root.is_dir():
-            raise InputError(f"stack directory not found: {root}")
+            raise InputError(f"no such folder: {root}")
         if not manifest.is_file():
             raise InputError(f"{root} has no {MANIFEST}; pass image files and --step-mm instead")
-        try:
-            doc = json.loads(manifest.read_text(encoding="utf-8"), parse_constant=_reject_constant)
-        except (json.JSONDecodeError, UnicodeDecodeError, ValueError) as exc:
-            raise InputError(f"{manifest} is not valid JSON: {exc}") from None
-        return cls.from_manifest(doc, root)
+        return cls.from_manifest(read_json(manifest), root)
 
     @classmethod
     def from_manifest(cls, doc: Any, root: str | os.PathLike) -> "FocalStack":
@@ -130,9 +143,7 @@ class FocalStack:
         frames_doc = doc.get("frames")
         if not isinstance(frames_doc, list):
             raise InputError(f"{MANIFEST}: 'frames' must be a list of {{file, z_mm}} objects")
-        rig = doc.get("rig") or {}
-        if not isinstance(rig, dict):
-            raise InputError(f"{MANIFEST}: 'rig' must be an object")
+        rig, optics, meta = (_object(doc, key) for key in ("rig", "optics", "meta"))
         frames = []
         for i, entry in enumerate(frames_doc):
             if not isinstance(entry, dict) or not isinstance(entry.get("file"), str):
@@ -149,9 +160,9 @@ class FocalStack:
             frames,
             pixel_size_mm=pixel,
             root=root,
-            optics=dict(doc.get("optics") or {}),
-            rig=dict(rig),
-            meta=dict(doc.get("meta") or {}),
+            optics=optics,
+            rig=rig,
+            meta=meta,
         )
 
     @classmethod
@@ -176,7 +187,7 @@ class FocalStack:
             if not p.is_file():
                 raise InputError(f"frame file not found: {p}")
         low = min(0.0, (len(paths) - 1) * step)
-        frames = [Frame(p, z0_mm + n * step - low) for n, p in enumerate(paths)]
+        frames = [Frame(p, round(z0_mm + n * step - low, 12)) for n, p in enumerate(paths)]
         return cls._sorted(frames, pixel_size_mm=pixel_size_mm, root=None)
 
     @classmethod
@@ -206,16 +217,30 @@ class FocalStack:
     @property
     def step_mm(self) -> float:
         """Median spacing between consecutive frames in mm."""
-        return float(np.median(np.diff(self.z_mm)))
+        return round(float(np.median(np.diff(self.z_mm))), 12)  # no 0.05000000000000001
 
     def read_frame(self, index: int) -> np.ndarray:
-        """Decode frame ``index`` (see :func:`read_image`)."""
-        return read_image(self.frames[index].path)
+        """Decode frame ``index`` (see :func:`read_image`).
+
+        Raises
+        ------
+        InputError
+            The frame is unreadable, or its pixel type differs from the first frame
+            decoded (frames of one stack share one bit depth).
+        """
+        path = self.frames[index].path
+        image = read_image(path)
+        first_dtype, first_path = self._first_kind.setdefault("kind", (image.dtype, path))
+        if image.dtype != first_dtype:
+            raise InputError(f"frame {path.name} is {_depth(image.dtype)} but {first_path.name} "
+                             f"is {_depth(first_dtype)}; all frames of a stack must have one "
+                             "bit depth")
+        return image
 
     def iter_frames(self) -> Iterator[tuple[int, float, np.ndarray]]:
         """Yield ``(index, z_mm, image)`` one frame at a time, ascending z."""
         for i, f in enumerate(self.frames):
-            yield i, f.z_mm, read_image(f.path)
+            yield i, f.z_mm, self.read_frame(i)
 
 
 def open_stack(
@@ -232,18 +257,31 @@ def open_stack(
     paths = [Path(p) for p in inputs]
     if not paths:
         raise InputError("no stack given: pass a stack directory or image files")
-    if len(paths) == 1 and paths[0].is_dir():
-        if (paths[0] / MANIFEST).is_file():
-            stack = FocalStack.open(paths[0])
+    if pixel_size_mm is not None:
+        _finite_number(pixel_size_mm, "--pixel-size-mm")
+    folder = None
+    if len(paths) == 1 and paths[0].suffix.lower() not in IMAGE_SUFFIXES:
+        folder = paths[0]
+        if not folder.is_dir():
+            raise InputError(f"no such folder: {folder}")
+        if (folder / MANIFEST).is_file():
+            stack = FocalStack.open(folder)
             if pixel_size_mm is not None:
                 stack = _replace_pixel(stack, pixel_size_mm)
             return stack
-        paths = sorted(p for p in paths[0].iterdir() if p.suffix.lower() in IMAGE_SUFFIXES)
+        paths = sorted(p for p in folder.iterdir() if p.suffix.lower() in IMAGE_SUFFIXES)
         if not paths:
-            raise InputError(f"{inputs[0]} has neither {MANIFEST} nor image files")
+            raise InputError(f"{folder} has neither {MANIFEST} nor image files")
     if step_mm is None:
-        raise InputError("a list of images needs --step-mm (the focus step between frames)")
-    return FocalStack.from_images(paths, step_mm=step_mm, pixel_size_mm=pixel_size_mm)
+        what = (f"{folder} has no {MANIFEST}; its {len(paths)} images" if folder is not None
+                else "a list of images")
+        raise InputError(f"{what} need --step-mm (the focus step between frames)")
+    stack = FocalStack.from_images(paths, step_mm=step_mm, pixel_size_mm=pixel_size_mm)
+    if folder is not None:
+        log.info("%s has no %s: taking its %d images %s .. %s in name order as frames %g mm "
+                 "apart (%s)", folder, MANIFEST, len(paths), paths[0].name, paths[-1].name,
+                 step_mm, "first is the lowest focus" if step_mm > 0 else "first is the highest focus")
+    return stack
 
 
 def _replace_pixel(stack: FocalStack, pixel_size_mm: float) -> FocalStack:
@@ -324,6 +362,19 @@ def _z_from_rig(rig: dict[str, Any], n: Any, i: int) -> float:
     return d - (d_f + float(n) * step)
 
 
+def _depth(dtype: np.dtype) -> str:
+    return {"uint8": "8-bit", "uint16": "16-bit"}.get(np.dtype(dtype).name, np.dtype(dtype).name)
+
+
+def _object(doc: dict[str, Any], key: str) -> dict[str, Any]:
+    value = doc.get(key)
+    if value is None:
+        return {}
+    if not isinstance(value, dict):
+        raise InputError(f"{MANIFEST}: {key!r} must be an object; got {value!r:.40}")
+    return dict(value)
+
+
 def _finite_number(value: Any, name: str) -> float:
     if isinstance(value, bool) or not isinstance(value, (int, float)):
         raise InputError(f"{name} must be a number; got {value!r}")
@@ -331,10 +382,6 @@ def _finite_number(value: Any, name: str) -> float:
     if not math.isfinite(value):
         raise InputError(f"{name} must be finite; got {value}")
     return value
-
-
-def _reject_constant(name: str) -> float:
-    raise InputError(f"{MANIFEST} holds {name}, which is not a valid number")
 
 
 class StackWriter:
@@ -387,12 +434,26 @@ class StackWriter:
         manifest = root / MANIFEST
         if not manifest.is_file():
             raise InputError(f"nothing to resume: {manifest} does not exist")
-        doc = json.loads(manifest.read_text(encoding="utf-8"))
+        doc = read_json(manifest)
+        if not isinstance(doc, dict) or not isinstance(doc.get("frames"), list):
+            raise InputError(f"cannot resume {root}: {MANIFEST} must hold an object with a "
+                             f"'frames' list; got {json.dumps(doc)[:40]}")
+        for key in ("optics", "rig", "meta"):
+            doc[key] = _object(doc, key)
+        for i, entry in enumerate(doc["frames"]):
+            if not isinstance(entry, dict) or not isinstance(entry.get("file"), str):
+                raise InputError(f"cannot resume {root}: {MANIFEST} frames[{i}] must be an "
+                                 "object with a 'file' string")
+            _inside(root, entry["file"], i)
+            _finite_number(entry.get("z_mm"), f"{MANIFEST} frames[{i}].z_mm")
         writer = cls.__new__(cls)
         writer.root = root
         writer.doc = doc
-        files = [f["file"] for f in doc.get("frames", [])]
+        files = [f["file"] for f in doc["frames"]]
         writer.frame_format = Path(files[0]).suffix if files else ".png"
+        if writer.frame_format not in (".png", ".tiff"):
+            raise InputError(f"cannot resume {root}: its frames are {writer.frame_format} "
+                             "files, not written by smdinspect")
         return writer
 
     @property

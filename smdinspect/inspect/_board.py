@@ -16,7 +16,6 @@ Joint acceptance bands default to IPC-A-610 Class 2 fillet-height rules (see
 from __future__ import annotations
 
 import copy
-import json
 import logging
 import math
 import os
@@ -26,6 +25,7 @@ from typing import Any, Iterable
 
 import numpy as np
 
+from .._json import read_json
 from ..errors import InputError
 
 __all__ = [
@@ -36,7 +36,9 @@ __all__ = [
     "Component",
     "Fiducial",
     "Joint",
+    "MAX_BOARD_SIDE_MM",
     "board_from_dict",
+    "check_board_in_field",
     "joint_band",
     "load_board",
     "package_defaults",
@@ -47,6 +49,8 @@ log = logging.getLogger(__name__)
 
 BOARD_SCHEMA = "smdinspect-board"
 BOARD_VERSION = 1
+#: Largest board side accepted (mm); production panels are at most about 610 mm.
+MAX_BOARD_SIDE_MM = 1000.0
 
 _KINDS = ("chip", "gullwing")
 _STYLES = ("resistor", "capacitor", "ic")
@@ -447,7 +451,8 @@ def load_board(path: str | os.PathLike) -> Board:
     ----------
     path : str or PathLike
         A JSON board file (schema ``smdinspect-board`` version 1, see
-        ``references/README.md``).
+        ``references/README.md``), or the name of a board shipped with smdinspect
+        (``"demo_board"``; the repository's ``references/`` too).
 
     Returns
     -------
@@ -462,17 +467,49 @@ def load_board(path: str | os.PathLike) -> Board:
     """
     p = Path(path)
     if not p.is_file():
-        raise InputError(f"board file {str(p)!r} does not exist or is not a file")
-    try:
-        text = p.read_text(encoding="utf-8")
-    except (OSError, UnicodeDecodeError) as exc:
-        raise InputError(f"{p}: cannot read board file: {exc}") from exc
-    try:
-        data = json.loads(text)
-    except json.JSONDecodeError as exc:
-        raise InputError(f"{p}: not valid JSON: {exc.msg} at line {exc.lineno} "
-                         f"column {exc.colno}") from exc
-    return board_from_dict(data, source=str(p))
+        p = _shipped_board(str(path)) or p
+    if not p.is_file():
+        shipped = ", ".join(sorted(q.stem for d in _SHIPPED_DIRS if d.is_dir()
+                                   for q in d.glob("*.json")))
+        raise InputError(f"board file {str(path)!r} does not exist or is not a file "
+                         f"(boards shipped by name: {shipped or 'none'})")
+    return board_from_dict(read_json(p), source=str(p))
+
+
+#: Folders of the boards :func:`load_board` takes by name: the repository's, the package's.
+_SHIPPED_DIRS = (Path(__file__).resolve().parents[2] / "references",
+                 Path(__file__).resolve().parents[1] / "data")
+
+
+def _shipped_board(name: str) -> Path | None:
+    if Path(name).name != name or name.startswith("."):
+        return None  # a path, not a name
+    stem = name.removesuffix(".json")
+    return next((p for d in _SHIPPED_DIRS if (p := d / f"{stem}.json").is_file()), None)
+
+
+def check_board_in_field(board: Board, shape_px: tuple[int, int], pixel_size_mm: float, *,
+                         max_ratio: float = 4.0) -> None:
+    """Refuse a board far larger than the measured field, before any work is done.
+
+    A board more than ``max_ratio`` times the field's width or height cannot be located
+    in it; the usual cause is a wrong ``size_mm`` or ``pixel_size_mm``. This also bounds
+    what registration allocates (reference points grow with the board's area).
+
+    Parameters
+    ----------
+    board : Board
+    shape_px : (rows, cols)
+        The measurement's size in pixels.
+    pixel_size_mm : float
+    """
+    field_w, field_h = shape_px[1] * pixel_size_mm, shape_px[0] * pixel_size_mm
+    w, h = board.size_mm
+    if w > max_ratio * field_w or h > max_ratio * field_h:
+        raise InputError(
+            f"board {board.name!r} is {w:g} x {h:g} mm, more than {max_ratio:g} times the "
+            f"measured field ({field_w:.3g} x {field_h:.3g} mm: {shape_px[1]} x {shape_px[0]} "
+            f"px at {pixel_size_mm:g} mm): check the board's size_mm and the pixel size")
 
 
 def board_from_dict(data: dict[str, Any], *, source: str = "<dict>") -> Board:
@@ -496,8 +533,8 @@ def board_from_dict(data: dict[str, Any], *, source: str = "<dict>") -> Board:
     size = v.require(data, "size_mm", "board")
     if not isinstance(size, list) or len(size) != 2:
         v.fail(f"board: 'size_mm' must be [width, height]; got {size!r}")
-    w = v.number(size[0], "board: size_mm[0] (width)", positive=True)
-    h = v.number(size[1], "board: size_mm[1] (height)", positive=True)
+    w = v.number(size[0], "board: size_mm[0] (width)", positive=True, most=MAX_BOARD_SIDE_MM)
+    h = v.number(size[1], "board: size_mm[1] (height)", positive=True, most=MAX_BOARD_SIDE_MM)
     thickness = v.number(v.require(data, "thickness_mm", "board"), "board: thickness_mm",
                          positive=True)
 
@@ -572,7 +609,7 @@ class _Validator:
         return val
 
     def number(self, val: Any, what: str, *, positive: bool = False,
-               nonnegative: bool = False) -> float:
+               nonnegative: bool = False, most: float | None = None) -> float:
         if isinstance(val, bool) or not isinstance(val, (int, float)) or \
                 not math.isfinite(val):
             self.fail(f"{what} must be a finite number; got {val!r}")
@@ -580,6 +617,8 @@ class _Validator:
             self.fail(f"{what} must be > 0; got {val!r}")
         if nonnegative and val < 0:
             self.fail(f"{what} must be >= 0; got {val!r}")
+        if most is not None and val > most:
+            self.fail(f"{what} must be <= {most:g} mm; got {val!r}")
         return float(val)
 
 
