@@ -9,7 +9,6 @@ mesh), locates the board and judges every joint
 
 from __future__ import annotations
 
-import json
 import logging
 import os
 import shutil
@@ -19,6 +18,7 @@ from typing import Callable
 
 import numpy as np
 
+from ._json import read_json
 from .errors import BoardNotLocatedError, InputError
 
 __all__ = [
@@ -57,8 +57,8 @@ def load_reconstruction(path: str | os.PathLike, *, pixel_size_mm: float | None 
     if not is_reconstruction(root):
         missing = [f for f in RECONSTRUCTION_FILES if not (root / f).is_file()]
         raise InputError(f"{root} is not a reconstruction directory (missing {', '.join(missing)})")
+    summary = read_json(root / "summary.json")
     try:
-        summary = json.loads((root / "summary.json").read_text(encoding="utf-8"))
         height = np.asarray(tifffile.imread(root / "height_mm.tiff"), np.float32)
         conf = np.asarray(tifffile.imread(root / "confidence.tiff"), np.float32)
     except (OSError, ValueError) as exc:
@@ -66,24 +66,39 @@ def load_reconstruction(path: str | os.PathLike, *, pixel_size_mm: float | None 
     if height.shape != conf.shape or height.ndim != 2:
         raise InputError(f"{root}: height_mm.tiff {height.shape} and confidence.tiff "
                          f"{conf.shape} must be (H, W) of one shape")
-    min_conf = float((summary.get("config") or {}).get("min_confidence", 0.5))
+    if not isinstance(summary, dict) or not isinstance(summary.get("config") or {}, dict):
+        raise InputError(f"{root}: summary.json must hold the object smdinspect reconstruct "
+                         f"writes (with a 'config' object); got {str(summary)[:40]}")
+    min_conf = _summary_number(summary.get("config") or {}, "min_confidence", 0.5, root)
     sigma = np.full(height.shape, np.nan, np.float32)
     if (root / "sigma_mm.tiff").is_file():
         sigma = np.asarray(tifffile.imread(root / "sigma_mm.tiff"), np.float32)
     aif = read_image(root / "aif.png") if (root / "aif.png").is_file() else \
         np.zeros(height.shape, np.uint8)
-    p = pixel_size_mm if pixel_size_mm is not None else summary.get("pixel_size_mm")
-    if summary.get("xy_units") == "px" and pixel_size_mm is None:
-        p = None
-    z0, z1 = (summary.get("z_range_mm") or [0.0, 0.0])
-    step = summary.get("step_mm") or 0.0
-    z = np.arange(z0, z1 + step / 2, step) if step and z1 > z0 else np.array([z0, z1], float)
+    p = pixel_size_mm
+    if p is None and summary.get("xy_units") != "px" and summary.get("pixel_size_mm") is not None:
+        p = _summary_number(summary, "pixel_size_mm", 0.0, root)
+    z_range = summary.get("z_range_mm") or [0.0, 0.0]
+    if not isinstance(z_range, list) or len(z_range) != 2:
+        raise InputError(f"{root}: summary.json z_range_mm must be [low, high]; got {z_range!r}")
+    z0, z1 = (_summary_number({"z_range_mm": v}, "z_range_mm", 0.0, root) for v in z_range)
+    step = _summary_number(summary, "step_mm", 0.0, root)
+    n = int(round((z1 - z0) / step)) + 1 if step > 0 and z1 > z0 else 0
+    z = z0 + step * np.arange(n) if 3 <= n <= 100_000 else np.array([z0, z1], float)
     reliable = (conf >= min_conf) & np.isfinite(height)
     return Surface(height_mm=height, confidence=conf, reliable=reliable,
                    f_peak=np.full(height.shape, np.nan, np.float32), sigma_mm=sigma,
                    reliability_db=np.full(height.shape, np.nan, np.float32), aif=aif,
                    pixel_size_mm=None if p is None else float(p), z_mm=z,
                    meta={"loaded_from": str(root), **summary})
+
+
+def _summary_number(doc: dict, key: str, default: float, root: Path) -> float:
+    value = doc.get(key)
+    value = default if value is None else value
+    if isinstance(value, bool) or not isinstance(value, (int, float)) or not np.isfinite(value):
+        raise InputError(f"{root}: summary.json {key} must be a number; got {value!r}")
+    return float(value)
 
 
 def inspection_focus_config():
