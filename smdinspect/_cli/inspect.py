@@ -7,7 +7,6 @@ Exit codes: 0 every joint passes (unreliable joints are reported but do not fail
 from __future__ import annotations
 
 import argparse
-import json
 import logging
 from pathlib import Path
 
@@ -40,15 +39,15 @@ def register(sub: argparse._SubParsersAction) -> None:
 
 
 def inspect_config_from(args: argparse.Namespace):
+    from .._json import read_json
     from ..errors import InputError
     from ..inspect import InspectConfig
 
     doc = {}
     if args.inspect_config is not None:
-        try:
-            doc = json.loads(args.inspect_config.read_text(encoding="utf-8"))
-        except (OSError, json.JSONDecodeError) as exc:
-            raise InputError(f"--inspect-config {args.inspect_config}: {exc}") from None
+        if not args.inspect_config.is_file():
+            raise InputError(f"--inspect-config {args.inspect_config}: no such file")
+        doc = read_json(args.inspect_config)
         if not isinstance(doc, dict):
             raise InputError(f"--inspect-config {args.inspect_config}: must hold a JSON object")
     if args.min_reliable_fraction is not None:
@@ -57,24 +56,46 @@ def inspect_config_from(args: argparse.Namespace):
 
 
 def run(args: argparse.Namespace) -> int:
+    from .. import _atomic
     from ..cad import load_any_board
     from ..cli import progress_callback
+    from ..errors import BoardNotLocatedError, InputError
+    from ..inspect import REPORT_FILES
+    from ..inspect._board import check_board_in_field
     from ..pipeline import inspect_stack, is_reconstruction, load_reconstruction
+    from ..sff._export import RECONSTRUCTION_OUTPUTS
     from ..stack import open_stack
     from .reconstruct import focus_config_from
 
     board = load_any_board(args.board)  # a board JSON, or a CAD file imported on the fly
     config = inspect_config_from(args)
+    carry: tuple[str, ...] = ()
     if len(args.stack) == 1 and is_reconstruction(args.stack[0]):
         stack = load_reconstruction(args.stack[0], pixel_size_mm=args.pixel_size_mm)
-        source = str(args.stack[0])
+        source, shape = str(args.stack[0]), stack.shape
+        if args.out.is_dir() and args.out.samefile(args.stack[0]):
+            carry = RECONSTRUCTION_OUTPUTS  # the reports join the reconstruction they read
     else:
         stack = open_stack(args.stack, step_mm=args.step_mm, pixel_size_mm=args.pixel_size_mm)
-        source = None
-    result = inspect_stack(stack, board, args.out, focus_config=focus_config_from(args),
-                           inspect_config=config, keep_unreliable=args.keep_unreliable,
-                           progress=progress_callback(args, "focus"), html=not args.no_html,
-                           source=source)
+        source, shape = None, stack.read_frame(0).shape[:2]
+    if stack.pixel_size_mm is None:
+        raise InputError("inspection needs the pixel size in mm: give --pixel-size-mm "
+                         f"(the input {args.stack[0]} has none)")
+    check_board_in_field(board, shape, stack.pixel_size_mm)
+    not_located = None
+    # Every output of this run goes to a temporary sibling of --out, swapped in at the end:
+    # a run that fails leaves --out as it was, and no old report survives beside new ones.
+    with _atomic.replace_dir(args.out, replaces=RECONSTRUCTION_OUTPUTS + REPORT_FILES,
+                             carry=carry) as tmp:
+        try:
+            result = inspect_stack(stack, board, tmp, focus_config=focus_config_from(args),
+                                   inspect_config=config, keep_unreliable=args.keep_unreliable,
+                                   progress=progress_callback(args, "focus"),
+                                   html=not args.no_html, source=source)
+        except BoardNotLocatedError as exc:
+            not_located = exc  # its report.json (and the reconstruction) are this run's outputs
+    if not_located is not None:
+        raise not_located
     print(result.summary())
     print(f"reports in {args.out}/ (open report.html)")
     return result.exit_code

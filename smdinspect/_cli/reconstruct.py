@@ -4,8 +4,6 @@ from __future__ import annotations
 
 import argparse
 import logging
-import shutil
-import tempfile
 from pathlib import Path
 
 log = logging.getLogger(__name__)
@@ -59,28 +57,36 @@ def register(sub: argparse._SubParsersAction) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
+    from .. import _atomic
     from ..calibrate import apply_calibration_file
     from ..cli import progress_callback
     from ..sff import reconstruct, write_reconstruction
+    from ..sff._export import RECONSTRUCTION_OUTPUTS
     from ..stack import open_stack
 
     config = focus_config_from(args)
     stack = open_stack(args.stack, step_mm=args.step_mm, pixel_size_mm=args.pixel_size_mm)
     if stack.pixel_size_mm is None:
         log.warning("pixel size unknown (give --pixel-size-mm): x and y are written in pixels")
-    surface = reconstruct(stack, config, progress=progress_callback(args, "focus"))
-    surface = apply_calibration_file(surface, args.calibration)
-    # Write into a sibling temporary folder, then move the files in: an error while
-    # writing leaves OUT_DIR as it was.
-    args.out.mkdir(parents=True, exist_ok=True)
-    with tempfile.TemporaryDirectory(dir=args.out, prefix=".partial-") as tmp:
+    with _atomic.replace_dir(args.out, replaces=RECONSTRUCTION_OUTPUTS) as tmp:
+        surface = reconstruct(stack, config, progress=progress_callback(args, "focus"))
+        surface = apply_calibration_file(surface, args.calibration)
         write_reconstruction(surface, tmp, keep_unreliable=args.keep_unreliable)
-        for f in Path(tmp).iterdir():
-            shutil.move(str(f), args.out / f.name)
+    if not surface.reliable.any():
+        raise nothing_measured(len(stack), args.out)
     h = surface.height_mm[surface.reliable]
-    rng = f"{h.min():.3f} .. {h.max():.3f} mm" if h.size else "n/a"
     print(f"reconstructed {len(stack)} frames, {surface.shape[1]}x{surface.shape[0]} px: "
-          f"coverage {100 * surface.coverage:.1f}%, heights {rng}, "
+          f"coverage {100 * surface.coverage:.1f}%, heights {h.min():.3f} .. {h.max():.3f} mm, "
           f"{surface.meta['mpixel_per_s']:.0f} Mpixel/s")
     print(f"outputs in {args.out}/ (open view3d.png first)")
     return 0
+
+
+def nothing_measured(n_frames: int, out: Path):
+    """The error of a stack in which no pixel has a reliable focus peak."""
+    from ..errors import InputError
+
+    return InputError(
+        f"nothing could be measured: no pixel of the {n_frames} frames has a reliable focus "
+        "peak (no texture in focus? check the sweep's z range, the lighting, --min-confidence); "
+        f"{out}/ holds the maps, aif.png and summary.json, no cloud or mesh")

@@ -18,6 +18,7 @@ from ..errors import InputError
 from ._surface import Surface, _unit_rgb
 
 __all__ = [
+    "RECONSTRUCTION_OUTPUTS",
     "height_field_mesh",
     "render_height_png",
     "render_view3d_png",
@@ -29,6 +30,13 @@ __all__ = [
 log = logging.getLogger(__name__)
 
 MESH_MAX_SIDE = 384  # the exported height-field mesh is at most this many vertices a side
+
+#: Every file :func:`write_reconstruction` may write.
+RECONSTRUCTION_OUTPUTS = (
+    "height_mm.tiff", "confidence.tiff", "sigma_mm.tiff", "aif.png", "height_filled_mm.tiff",
+    "sigma_filled_mm.tiff", "filled.png", "field.png", "height.png", "view3d.png", "cloud.ply",
+    "mesh.ply", "mesh.stl", "summary.json",
+)
 
 
 def _require(module: str):
@@ -200,6 +208,10 @@ def write_reconstruction(
     ``view3d.png``, ``cloud.ply`` (measured points only), ``mesh.ply`` and ``mesh.stl``
     (the dense surface over the field) and ``summary.json``.
 
+    When nothing could be measured (no reliable pixel) there is no cloud and no mesh
+    (the dense surface would be all fill): ``summary.json`` says ``"measured": false``
+    (logged); the maps and previews show what the stack holds.
+
     Returns
     -------
     dict
@@ -221,25 +233,34 @@ def write_reconstruction(
     if previews:
         paths["height.png"] = render_height_png(surface, out / "height.png")
         paths["view3d.png"] = render_view3d_png(surface, out / "view3d.png")
-    paths["cloud.ply"] = write_point_cloud(surface, out / "cloud.ply", keep_unreliable=keep_unreliable)
-    mesh = height_field_mesh(surface, keep_unreliable=keep_unreliable)
-    for name in ("mesh.ply", "mesh.stl"):
-        with _atomic.atomic_path(out / name) as tmp:
-            mesh.export(tmp)
-        paths[name] = out / name
+    measured = bool(surface.reliable.any())
+    mesh = None
+    if measured:
+        paths["cloud.ply"] = write_point_cloud(surface, out / "cloud.ply",
+                                               keep_unreliable=keep_unreliable)
+        mesh = height_field_mesh(surface, keep_unreliable=keep_unreliable)
+        for name in ("mesh.ply", "mesh.stl"):
+            with _atomic.atomic_path(out / name) as tmp:
+                mesh.export(tmp)
+            paths[name] = out / name
+    else:
+        log.info("nothing could be measured: no pixel has a reliable focus peak; "
+                    "no cloud.ply or mesh written")
     reliable = surface.height_mm[surface.reliable]
     summary = {
         "smdinspect": "reconstruction",
         "pixel_size_mm": surface.pixel_size_mm,
         "xy_units": "mm" if surface.pixel_size_mm else "px",
+        "measured": measured,
         "coverage": round(surface.coverage, 4),
         "height_mm": None if reliable.size == 0 else {
             "min": float(reliable.min()), "p01": float(np.percentile(reliable, 1)),
             "median": float(np.median(reliable)), "p99": float(np.percentile(reliable, 99)),
             "max": float(reliable.max()),
         },
-        "cloud_points": int(surface.reliable.sum() if not keep_unreliable else surface.reliable.size),
-        "mesh_faces": int(len(mesh.faces)),
+        "cloud_points": 0 if not measured else int(surface.reliable.sum() if not keep_unreliable
+                                                   else surface.reliable.size),
+        "mesh_faces": 0 if mesh is None else int(len(mesh.faces)),
         "keep_unreliable": keep_unreliable,
         **surface.meta,
         **(extra_summary or {}),
