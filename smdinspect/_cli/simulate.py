@@ -125,10 +125,17 @@ def sweep_heights(height_range_mm, *, step_mm: float, frames: int | None = None,
     lowest point (the board must stay in range; the tops of tall parts are cut off).
     ``z_range`` with ``frames`` sets the step.
     """
+    from ..acquire import MAX_FRAMES
+
     lo, hi = height_range_mm
     step = float(step_mm)
     if frames is not None and frames < 3:
         raise InputError(f"--frames must be >= 3; got {frames}")
+    span = (z_range[1] - z_range[0]) if z_range is not None else hi - lo + 2 * margin_steps * step
+    planned = frames if frames is not None else span / step + 1
+    if not planned <= MAX_FRAMES:
+        raise InputError(f"the sweep would take {planned:,.0f} frames, more than {MAX_FRAMES} "
+                         "(check --step-mm or --frames)")
     if z_range is not None:
         zlo, zhi = z_range
         if zhi <= zlo:
@@ -180,6 +187,13 @@ def _board_scene(args: argparse.Namespace):
     scene, labels = board_scene(board, defects=defects, pixel_size_mm=args.pixel_size_mm,
                                 shape=shape, offset_mm=offset, rotate_deg=args.rotate_deg,
                                 seed=args.seed)
+    outside = [j["id"] for j in labels["joints"] if not j.get("in_view", True)]
+    if outside:
+        h, w = scene.shape
+        log.warning("%d of %d joints lie outside the rendered %dx%d px (%.1f x %.1f mm): %s; "
+                    "leave out --size to render the whole board", len(outside),
+                    len(labels["joints"]), w, h, w * args.pixel_size_mm, h * args.pixel_size_mm,
+                    ", ".join(outside[:6]) + (", ..." if len(outside) > 6 else ""))
     return scene, labels
 
 

@@ -23,7 +23,7 @@ from ._fake_grbl import FAULT_KINDS, FakeGrbl
 from ._grbl import ALARM_MEANINGS, ERROR_MEANINGS, GrblStage, parse_status
 from ._rig import CameraConfig, CameraKind, Rig, RigConfig, acquire, load_rig, parse_rig
 from ._stage import Stage, StageConfig, StageProtocol, StageStatus
-from ._sweep import SweepConfig, SweepResult, ZMapping, run_sweep
+from ._sweep import MAX_FRAMES, SweepConfig, SweepResult, ZMapping, run_sweep
 
 __all__ = [
     "ALARM_MEANINGS",
@@ -36,6 +36,7 @@ __all__ = [
     "FolderCamera",
     "GenICamCamera",
     "GrblStage",
+    "MAX_FRAMES",
     "OpenCVCamera",
     "Rig",
     "RigConfig",

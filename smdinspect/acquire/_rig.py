@@ -459,8 +459,12 @@ def acquire(
     if session.complete:
         log.info("%s is already complete (%d frames); nothing to do", out, session.done)
         return session.finish()
-    with Rig(rig) as opened:
-        if not resume:
-            session.writer.doc["pixel_size_mm"] = opened.pixel_size_mm
-            session.writer.doc["optics"] = opened.optics
-        return session.run(opened.stage, opened.camera, progress=progress)
+    try:
+        with Rig(rig) as opened:
+            if not resume:
+                session.writer.doc["pixel_size_mm"] = opened.pixel_size_mm
+                session.writer.doc["optics"] = opened.optics
+            return session.run(opened.stage, opened.camera, progress=progress)
+    except BaseException:
+        session.discard_if_empty()  # a failed run leaves no empty --out behind
+        raise

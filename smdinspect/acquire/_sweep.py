@@ -28,15 +28,18 @@ from typing import Any, Callable
 
 import numpy as np
 
-from ..errors import CameraError, InputError, SmdInspectError, StageError
+from ..errors import CameraError, InputError, OutputError, SmdInspectError, StageError
 from ._camera import Camera, capture_average
 from ._stage import Stage
 
-__all__ = ["SweepConfig", "SweepResult", "ZMapping", "run_sweep"]
+__all__ = ["MAX_FRAMES", "SweepConfig", "SweepResult", "ZMapping", "run_sweep"]
 
 log = logging.getLogger(__name__)
 
 Progress = Callable[[int, int], None]
+
+#: Default bound on the frames of one sweep (``[sweep] max_frames`` raises it).
+MAX_FRAMES = 2000
 
 
 @dataclass(frozen=True)
@@ -92,6 +95,9 @@ class SweepConfig:
         Overshoot distance that takes up the lead screw's slack; 0 disables it.
     frames_per_step : int
         Frames averaged per position.
+    max_frames : int
+        Refuse a sweep planning more frames than this (default :data:`MAX_FRAMES`): a
+        mistyped step must not start hours of capture and fill the disk.
     """
 
     z_start_mm: float
@@ -100,6 +106,7 @@ class SweepConfig:
     settle_s: float = 0.0
     backlash_mm: float = 0.0
     frames_per_step: int = 1
+    max_frames: int = MAX_FRAMES
 
     def __post_init__(self) -> None:
         for name in ("z_start_mm", "z_stop_mm", "step_mm", "settle_s", "backlash_mm"):
@@ -116,6 +123,15 @@ class SweepConfig:
                 or self.frames_per_step < 1):
             raise InputError(f"sweep frames_per_step must be an integer >= 1; got "
                              f"{self.frames_per_step!r}")
+        if isinstance(self.max_frames, bool) or not isinstance(self.max_frames, int) \
+                or self.max_frames < 3:
+            raise InputError(f"sweep max_frames must be an integer >= 3; got {self.max_frames!r}")
+        planned = abs(self.z_stop_mm - self.z_start_mm) / self.step_mm + 1
+        if not planned <= self.max_frames + 1e-6:
+            raise InputError(
+                f"sweep from z_start_mm={self.z_start_mm} to z_stop_mm={self.z_stop_mm} in "
+                f"steps of {self.step_mm} mm plans {planned:.3g} frames, more than max_frames = "
+                f"{self.max_frames}; check step_mm, or raise max_frames in [sweep]")
         if self.n_frames < 3:
             raise InputError(
                 f"sweep from z_start_mm={self.z_start_mm} to z_stop_mm={self.z_stop_mm} in "
@@ -214,8 +230,10 @@ def run_sweep(
         rig changed since the stack was started.
     StageError, CameraError
         Hardware failures; a feed hold is sent and the frames so far are kept.
+    OutputError
+        No space left on the device; frames so far are kept.
     OSError
-        Disk full or not writable; frames so far are kept.
+        Not writable; frames so far are kept.
     """
     session = _Session.prepare(out, sweep=sweep, mapping=mapping, resume=resume,
                                pixel_size_mm=pixel_size_mm, optics=optics, rig=rig,
@@ -237,6 +255,7 @@ class _Session:
         self.mapping: ZMapping
         self.done = 0
         self.ref: tuple[tuple[int, ...], np.dtype] | None = None
+        self.made: list[Path] = []  # folders this session created, outermost first
 
     @classmethod
     def prepare(cls, out: str | Path, *, sweep: SweepConfig, mapping: ZMapping, resume: bool,
@@ -271,16 +290,14 @@ class _Session:
             }
             meta = {"rig_sha256": rig_sha256, "planned_frames": sweep.n_frames,
                     "complete": False, "acquired_by": "smdinspect acquire"}
+            self.made = [p for p in (root, *root.parents) if not p.exists()][::-1]
             self.writer = StackWriter(root, pixel_size_mm=pixel_size_mm, optics=optics,
                                       rig=rig_block, meta=meta)
             return self
         if not manifest.is_file():
             raise InputError(f"nothing to resume: {root} has no {MANIFEST}; run without --resume")
-        try:
-            writer = StackWriter.resume(root)
-        except ValueError as exc:
-            raise InputError(f"cannot resume {root}: {MANIFEST} is not valid JSON ({exc})") from None
-        meta = writer.doc.get("meta") or {}
+        writer = StackWriter.resume(root)
+        meta = writer.doc["meta"]
         old = meta.get("rig_sha256")
         if old is None:
             raise InputError(f"cannot resume {root}: its {MANIFEST} was not written by "
@@ -295,13 +312,23 @@ class _Session:
         if len(frames) > sweep.n_frames:
             raise InputError(f"cannot resume {root}: it holds {len(frames)} frames but the rig "
                              f"plans {sweep.n_frames}")
-        for entry in frames:
+        for i, entry in enumerate(frames):
             if not (root / entry["file"]).is_file():
                 raise InputError(f"cannot resume {root}: frame {entry['file']} listed in "
                                  f"{MANIFEST} is missing")
-        if frames:
-            first = read_image(root / frames[0]["file"])
-            self.ref = (first.shape, first.dtype)
+            try:
+                image = read_image(root / entry["file"])
+            except InputError as exc:
+                # written atomically, so damaged later: take it, and the frames after it, again
+                log.warning("%s; taking frames %d..%d again", exc, i, len(frames) - 1)
+                del frames[i:]
+                break
+            if self.ref is None:
+                self.ref = (image.shape, image.dtype)
+            elif (image.shape, image.dtype) != self.ref:
+                raise InputError(f"cannot resume {root}: frame {entry['file']} is "
+                                 f"{_describe(image.shape, image.dtype)} but the first frame is "
+                                 f"{_describe(*self.ref)}")
         self.writer = writer
         self.done = len(frames)
         self._remove_strays(root)
@@ -340,14 +367,25 @@ class _Session:
                     progress(i + 1, total)
         except BaseException as exc:
             stage.stop()
+            self.discard_if_empty()
             kept = len(writer.frames)
             log.info("sweep stopped after %d of %d frames (%s); feed hold sent", kept, total,
                      type(exc).__name__)
-            if isinstance(exc, SmdInspectError) and kept:
+            if isinstance(exc, SmdInspectError) and not isinstance(exc, OutputError) and kept:
                 raise type(exc)(f"{exc} [{kept} of {total} frames kept in {writer.root}; "
                                 "fix the cause and run again with --resume]") from exc
             raise
         return self.finish(n_new=total - start, t0=t0)
+
+    def discard_if_empty(self) -> None:
+        """Remove the folders this session created while they hold no frame."""
+        if self.writer is None or self.writer.frames:
+            return
+        for folder in reversed(self.made):
+            try:
+                folder.rmdir()
+            except OSError:
+                return
 
     @property
     def complete(self) -> bool:
@@ -396,9 +434,9 @@ class _Session:
         except OSError as exc:
             writer.frames[:] = writer.frames[:i]  # the manifest on disk never listed it
             if exc.errno == errno.ENOSPC:
-                raise OSError(errno.ENOSPC, f"disk full while writing frame {i} to {writer.root}; "
-                              f"the {i} frames before it are kept: free space and run again "
-                              "with --resume") from None
+                raise OutputError(errno.ENOSPC, f"no space left on device: {writer.root} "
+                                  f"(frame {i}); the {i} frames before it are kept: free space "
+                                  "and run again with --resume") from None
             raise
         log.debug("frame %d: z_mm %.4f (machine %.4f)", i, z_mm, machine_z)
 

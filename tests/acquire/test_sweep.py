@@ -209,8 +209,9 @@ def test_disk_full_is_one_clear_error_and_resumable(fake, frames_dir, tmp_path, 
 
     out = tmp_path / "s"
     monkeypatch.setattr(smdinspect._atomic, "write_image", full_after_three)
-    with pytest.raises(OSError, match=r"disk full while writing frame 3 to .*the 3 frames before "
-                                      r"it are kept: free space and run again with --resume") as ei:
+    with pytest.raises(OSError, match=r"no space left on device: .*s \(frame 3\); the 3 frames "
+                                      r"before it are kept: free space and run again with --resume"
+                       ) as ei:
         sweep_with(fake, out, frames_dir)
     assert ei.value.errno == errno.ENOSPC
     assert len(assert_intact(out)["frames"]) == 3
