@@ -108,10 +108,15 @@ def inspection_focus_config():
     body edge over the fillet next to it and smooths the fillet itself. On the synthetic
     boards (20 µm/px) a 5-px window halved the contaminated band and tracked the fillet
     profile within ~20 %, while edge pixels came out unreliable instead of wrong.
+    No coarse focus level: its window (~24 px, 0.5 mm at 20 µm/px) is wider than a
+    0402 fillet, so it would fill a fillet with the height of the body next to it. No
+    support check: the top of a low fillet is a band of single reliable pixels that no
+    window 5 px away repeats, and a joint is judged on a robust fit over its pad, not on
+    single pixels.
     """
     from .sff import FocusConfig
 
-    return FocusConfig(window_px=5, halo_ratio=8.0)
+    return FocusConfig(window_px=5, halo_ratio=8.0, coarse_factor=0, support_steps=0)
 
 
 def inspect_stack(

@@ -6,7 +6,7 @@ load them when called.
 
 from ._align import Alignment, estimate_alignment
 from ._config import FitMethod, FocusConfig
-from ._confidence import confidence_map
+from ._confidence import confidence_map, unsupported_mask
 from ._depth import PeakFit, PeakTracker, fit_peaks
 from ._export import (
     height_field_mesh,
@@ -16,7 +16,7 @@ from ._export import (
     write_point_cloud,
     write_reconstruction,
 )
-from ._focus import OPERATORS, FocusOperator, focus_measure
+from ._focus import OPERATORS, FocusOperator, focus_measure, noise_sigma
 from ._reconstruct import reconstruct, to_gray
 from ._surface import Surface, pixel_to_xy_mm, xy_mm_to_pixel
 
@@ -34,12 +34,14 @@ __all__ = [
     "fit_peaks",
     "focus_measure",
     "height_field_mesh",
+    "noise_sigma",
     "pixel_to_xy_mm",
     "reconstruct",
     "render_height_png",
     "render_view3d_png",
     "surface_point_cloud",
     "to_gray",
+    "unsupported_mask",
     "write_point_cloud",
     "write_reconstruction",
     "xy_mm_to_pixel",

@@ -62,7 +62,7 @@ class Alignment:
         ``MIN_CORRELATION``); their warp reuses the previous step.
     noise_sigma : float
         Sensor noise σ in the frames' grey units: the median of the per-frame estimates
-        (:func:`~smdinspect.sff._focus.noise_sigma`). Texture inflates an estimate and
+        (:func:`~smdinspect.sff.noise_sigma`). Texture inflates an estimate and
         JPEG smoothing of defocused frames deflates it; too large is the safe side (the
         magnification correction of :func:`reconstruct` then leaves weak texture
         uncorrected instead of faking a peak in textureless pixels). 0 when unknown.

@@ -41,7 +41,7 @@ import numpy as np
 
 from ._depth import PeakFit
 
-__all__ = ["confidence_map", "depth_edge_mask", "halo_mask"]
+__all__ = ["confidence_map", "depth_edge_mask", "halo_mask", "unsupported_mask"]
 
 R_LOW_DB, R_HIGH_DB = 14.0, 26.0
 WIDTH_OK, WIDTH_BAD = 2.0, 4.0
@@ -196,3 +196,32 @@ def halo_mask(amplitude: np.ndarray, frame_pos: np.ndarray, candidate: np.ndarra
             if m.size:
                 dom[m] = np.maximum(dom[m], running[cell[m]])
     return dom.reshape(h, w) > ratio * amplitude
+
+
+def unsupported_mask(height_mm: np.ndarray, reliable: np.ndarray, *, distance_px: int,
+                     tol_mm: float) -> np.ndarray:
+    """(H, W) bool: reliable pixels that no independent neighbour corroborates.
+
+    Two focus windows ``distance_px`` apart (the window side) share no pixel, so their
+    noise is independent. A real surface is measured alike by the windows around a
+    pixel, at least along its height contour; a peak that noise or a glint made is a
+    blob one window wide that no window next to it repeats. A reliable pixel is kept
+    when one of the 8 pixels ``distance_px`` away (rows, columns, diagonals) is reliable
+    and within ``tol_mm`` of it; 16 directions, so that a thin band of real heights
+    (a fillet's top along a pad edge) finds its continuation whatever its direction.
+    """
+    h, w = height_mm.shape
+    d = int(distance_px)
+    half = max(1, d // 2)
+    supported = np.zeros((h, w), bool)
+    hv = np.where(reliable, height_mm, np.nan).astype(np.float32)
+    offsets = {(sy * a, sx * b) for a, b in ((d, 0), (0, d), (d, d), (d, half), (half, d))
+               for sy in (-1, 1) for sx in (-1, 1)}
+    for dy, dx in sorted(offsets):
+        if True:
+            # pixel (y, x) looks at (y + dy, x + dx)
+            ys, yd = slice(max(0, -dy), h - max(0, dy)), slice(max(0, dy), h - max(0, -dy))
+            xs, xd = slice(max(0, -dx), w - max(0, dx)), slice(max(0, dx), w - max(0, -dx))
+            with np.errstate(invalid="ignore"):
+                supported[ys, xs] |= np.abs(hv[ys, xs] - hv[yd, xd]) <= tol_mm
+    return reliable & ~supported

@@ -57,6 +57,18 @@ class FocusConfig:
         A pixel whose focus peak is this many times weaker than that of a neighbour
         (within a window and 2 px) peaking at least two frames away is unreliable: its peak is
         the defocused neighbour's blur (a halo). 0 turns the check off. Default 4.
+    support_steps : float
+        A reliable height needs corroboration: one of the pixels a window away (an
+        independent window, 16 directions) reliable and within this many frame steps
+        (see :func:`smdinspect.sff.unsupported_mask`); isolated peaks made by noise or a
+        glint become unreliable. 0 turns the check off. Default 1.5.
+    coarse_factor : int
+        A second, coarser focus level: each frame's focus averaged over
+        ``coarse_factor``² blocks and a 5 × 5 box on that grid (a window about
+        ``window_px + 5·coarse_factor`` px wide), tracked on the reduced grid. Where the
+        fine level is unreliable for want of texture, a reliable coarse height is used
+        (smoother, lower lateral resolution; never where the fine level found a halo).
+        0 or 1 turns it off. Default 4.
     align : bool
         Register the frames (affine, by ECC) onto the most magnified frame's grid and
         resample their focus measures there; needed for ordinary (non-telecentric)
@@ -73,6 +85,8 @@ class FocusConfig:
     min_confidence: float = 0.5
     edge_jump_steps: float = 3.0
     halo_ratio: float = 4.0
+    support_steps: float = 1.5
+    coarse_factor: int = 4
     align: bool = False
     workers: int = 2
 
@@ -106,6 +120,11 @@ class FocusConfig:
         if not (isinstance(self.halo_ratio, (int, float)) and math.isfinite(self.halo_ratio)
                 and (self.halo_ratio == 0 or self.halo_ratio >= 1)):
             raise InputError(f"halo_ratio must be 0 (off) or >= 1; got {self.halo_ratio!r}")
+        if not (isinstance(self.support_steps, (int, float)) and math.isfinite(self.support_steps)
+                and self.support_steps >= 0):
+            raise InputError(f"support_steps must be >= 0 (0: off); got {self.support_steps!r}")
+        if not isinstance(self.coarse_factor, int) or not 0 <= self.coarse_factor <= 16:
+            raise InputError(f"coarse_factor must be an integer in 0..16; got {self.coarse_factor!r}")
         if not isinstance(self.workers, int) or self.workers < 1:
             raise InputError(f"workers must be an integer >= 1; got {self.workers!r}")
 

@@ -15,7 +15,7 @@ from ..errors import InputError
 from ..stack import FocalStack
 from ._align import Alignment, estimate_alignment
 from ._config import FitMethod, FocusConfig
-from ._confidence import confidence_map, depth_edge_mask, halo_mask
+from ._confidence import confidence_map, depth_edge_mask, halo_mask, unsupported_mask
 from ._depth import PeakTracker, fit_peaks
 from ._focus import FocusOperator, focus_measure, noise_focus
 from ._surface import Surface
@@ -110,6 +110,7 @@ def reconstruct(
         return image, focus
 
     tracker: PeakTracker | None = None
+    coarse: _CoarseLevel | None = None
     aif = None
     ref_shape = None
     depth = config.workers + 2  # frames in flight; bounds memory
@@ -128,40 +129,53 @@ def reconstruct(
                         f"window_px {config.window_px} is larger than the frames "
                         f"({image.shape[1]}x{image.shape[0]} px)")
                 tracker = PeakTracker(image.shape[:2], n, half_width=config.fit_half_width)
+                if config.coarse_factor > 1 and min(image.shape[:2]) >= 8 * config.coarse_factor:
+                    coarse = _CoarseLevel(image.shape[:2], n, config)
                 aif = np.zeros_like(image)
             elif image.shape != ref_shape:
                 raise _mismatch(stack.frames[i].path, image.shape, first, ref_shape)
             better = tracker.update(i, focus)
+            if coarse is not None:
+                coarse.update(i, focus)
             cv2.copyTo(image, better.view(np.uint8), aif)
             if progress is not None:
                 progress(i + 1, n)
     t_stream = time.perf_counter() - t0
 
-    tracker.finish()
-    fit = fit_peaks(tracker, z_mm, method=config.fit, workers=config.workers,
-                    power=operator.curve_power)
-    confidence = confidence_map(fit, window_px=config.window_px)
+    fit, confidence, halo = _level(tracker, z_mm, config, window_px=config.window_px,
+                                   halo_radius_px=config.window_px + 2)
     meta: dict = {}
     field = np.ones(tracker.shape, bool)
     if alignment is not None:
         field = alignment.field
-        confidence[~field] = 0.0
         meta["alignment"] = alignment.summary()
-    if config.halo_ratio > 0:
-        frame_pos = np.interp(fit.height_mm, z_mm, np.arange(n, dtype=np.float64))
-        halo = halo_mask(fit.f_best, frame_pos, confidence >= config.min_confidence,
-                         radius_px=config.window_px + 2, ratio=config.halo_ratio)
-        confidence[halo] = 0.0
+    confidence[~field] = 0.0
+    height = fit.coarse_mm if config.fit == FitMethod.ARGMAX else fit.height_mm
+    from_coarse = None
+    if coarse is not None:
+        height, confidence, from_coarse = coarse.merge(height, confidence, halo, field,
+                                                       z_mm, config)
+        meta["coarse_fraction"] = round(float(from_coarse.mean()), 4)
     if config.edge_jump_steps > 0:
-        edges = depth_edge_mask(fit.height_mm, confidence >= config.min_confidence,
-                                jump_mm=config.edge_jump_steps * stack.step_mm,
+        jump = config.edge_jump_steps * stack.step_mm
+        edges = depth_edge_mask(height, confidence >= config.min_confidence, jump_mm=jump,
                                 radius_px=config.window_px // 2 + 1)
+        if from_coarse is not None and from_coarse.any():
+            # a coarse window bleeds the higher side over half its width
+            edges |= from_coarse & depth_edge_mask(
+                height, confidence >= config.min_confidence, jump_mm=jump,
+                radius_px=coarse.window_px // 2 + 1)
         confidence[edges] = 0.0
     reliable = confidence >= config.min_confidence
-    if config.fit == FitMethod.ARGMAX:
-        height = fit.coarse_mm
-    else:
-        height = fit.height_mm
+    if config.support_steps > 0:
+        # independent windows must corroborate a height (kills isolated noise peaks)
+        tol = config.support_steps * stack.step_mm
+        lonely = unsupported_mask(height, reliable, distance_px=config.window_px, tol_mm=tol)
+        if from_coarse is not None:
+            lonely = (lonely & ~from_coarse) | (from_coarse & unsupported_mask(
+                height, reliable, distance_px=coarse.window_px, tol_mm=tol))
+        confidence[lonely] = 0.0
+        reliable &= ~lonely
     t_total = time.perf_counter() - t0
     h, w = tracker.shape
     meta.update({
@@ -190,6 +204,70 @@ def reconstruct(
         field=field,
         meta=meta,
     )
+
+
+def _level(tracker: PeakTracker, z_mm: np.ndarray, config: FocusConfig, *, window_px: int,
+           halo_radius_px: int):
+    """Fit one level's peaks and judge them: (fit, confidence, halo mask)."""
+    tracker.finish()
+    fit = fit_peaks(tracker, z_mm, method=config.fit, workers=config.workers,
+                    power=FocusOperator(config.operator).curve_power)
+    confidence = confidence_map(fit, window_px=window_px)
+    halo = np.zeros(tracker.shape, bool)
+    if config.halo_ratio > 0:
+        frame_pos = np.interp(fit.height_mm, z_mm, np.arange(len(z_mm), dtype=np.float64))
+        halo = halo_mask(fit.f_best, frame_pos, confidence >= config.min_confidence,
+                         radius_px=halo_radius_px, ratio=config.halo_ratio)
+        confidence[halo] = 0.0
+    return fit, confidence, halo
+
+
+class _CoarseLevel:
+    """The coarse focus level of :attr:`FocusConfig.coarse_factor`: every frame's focus
+    block-averaged by the factor and box-filtered 5 × 5 on the reduced grid, its peaks
+    tracked there (1/factor² of the fine level's memory and time)."""
+
+    BOX = 5
+
+    def __init__(self, shape: tuple[int, int], n_frames: int, config: FocusConfig) -> None:
+        f = config.coarse_factor
+        self.shape = shape
+        self.small = (shape[0] // f, shape[1] // f)
+        self.factor = f
+        #: side of the full-resolution footprint one coarse focus value sums over
+        self.window_px = config.window_px + self.BOX * f - 1
+        self.tracker = PeakTracker(self.small, n_frames, half_width=config.fit_half_width)
+
+    def update(self, n: int, focus: np.ndarray) -> None:
+        small = cv2.resize(focus, self.small[::-1], interpolation=cv2.INTER_AREA)
+        self.tracker.update(n, cv2.blur(small, (self.BOX, self.BOX),
+                                        borderType=cv2.BORDER_REFLECT))
+
+    def merge(self, height: np.ndarray, confidence: np.ndarray, halo: np.ndarray,
+              field: np.ndarray, z_mm: np.ndarray, config: FocusConfig):
+        """Fill the fine level's unreliable pixels inside ``field`` (except its ``halo``
+        pixels) from reliable coarse ones; returns (height, confidence, from_coarse)."""
+        # the noise test scales with the footprint; the halo radius is the footprint's
+        fit, conf, _ = _level(self.tracker, z_mm, config, window_px=self.window_px,
+                              halo_radius_px=-(-(self.window_px + 2) // self.factor))
+        inside = cv2.resize(field.astype(np.float32), self.small[::-1],
+                            interpolation=cv2.INTER_AREA) > 0.999
+        ok = (conf >= config.min_confidence) & inside
+        h_small = fit.coarse_mm if config.fit == FitMethod.ARGMAX else fit.height_mm
+        size = self.shape[::-1]
+        # bilinear upsampling normalised over the reliable coarse pixels; a
+        # full-resolution pixel needs half its interpolation weight on reliable ones
+        weight = ok.astype(np.float32)
+        support = cv2.resize(weight, size, interpolation=cv2.INTER_LINEAR)
+        with np.errstate(divide="ignore", invalid="ignore"):
+            h_up = cv2.resize(np.where(ok, h_small, 0).astype(np.float32), size,
+                              interpolation=cv2.INTER_LINEAR) / support
+            c_up = cv2.resize(np.where(ok, conf, 0).astype(np.float32), size,
+                              interpolation=cv2.INTER_LINEAR) / support
+        use = (confidence < config.min_confidence) & ~halo & field & (support >= 0.5)
+        height = np.where(use, h_up, height).astype(np.float32)
+        confidence = np.where(use, c_up, confidence).astype(np.float32)
+        return height, confidence, use
 
 
 def _mismatch(path, shape, first, ref_shape) -> InputError:

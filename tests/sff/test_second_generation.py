@@ -97,6 +97,62 @@ def test_focus_is_corrected_for_magnification_change(tmp_path, monkeypatch):
     assert _bias_on_magnified_plane(stack, height, z, mag, config) < -0.12
 
 
+def _weak_plane(tmp_path, *, contrast, seed, name="w"):
+    n = 128
+    tex = texture("band", n, seed=seed, freq_cyc_px=0.12, contrast=contrast)
+    radiance, height = slanted_plane(size_px=n, low_mm=0.0, high_mm=1.0, texture=tex, seed=seed)
+    z = np.arange(-0.2, 1.2 + 1e-9, 0.07)
+    frames = render_gather(radiance, height, z, blur_px_per_mm=0.6 * 0.3536 / 0.07,
+                           sigma0_px=0.5, noise=GatherNoise(), seed=seed)
+    return _stack(tmp_path, frames, z, name=name), height
+
+
+def test_coarse_level_measures_weak_texture_the_fine_window_cannot(tmp_path):
+    stack, truth = _weak_plane(tmp_path, contrast=0.08, seed=10_013)
+    fine = reconstruct(stack, FocusConfig(coarse_factor=0))
+    both = reconstruct(stack, FocusConfig())
+    assert both.reliable.mean() > fine.reliable.mean() + 0.15  # measured 0.44 -> 0.71
+    assert both.meta["coarse_fraction"] > 0.15
+    err = np.abs(both.height_mm - truth)[both.reliable] / 0.07
+    assert np.mean(err > 1) < 0.03
+    # the fine level's own heights are kept where it was reliable
+    keep = fine.reliable & both.reliable
+    assert np.array_equal(both.height_mm[keep], fine.height_mm[keep])
+
+
+def test_support_check_drops_isolated_noise_peaks(tmp_path):
+    """A textureless, noisy scene: the few peaks noise pushes through every cue are
+    blobs one window wide that no independent window repeats."""
+    n, seed = 128, 10_012
+    radiance = np.full((n, n), 0.5, np.float32)
+    height = np.full((n, n), 0.5, np.float32)
+    z = np.arange(-0.2, 1.2 + 1e-9, 0.07)
+    frames = render_gather(radiance, height, z, blur_px_per_mm=3.0,
+                           noise=GatherNoise(read_noise=0.01), seed=seed)
+    stack = _stack(tmp_path, frames, z)
+    off = reconstruct(stack, FocusConfig(support_steps=0, coarse_factor=0))
+    on = reconstruct(stack, FocusConfig(coarse_factor=0))
+    assert off.reliable.sum() > 0  # noise passes the per-pixel cues somewhere
+    assert on.reliable.sum() == 0
+
+
+def test_unsupported_mask_keeps_surfaces_and_drops_blobs():
+    from smdinspect.sff import unsupported_mask
+
+    h = np.add.outer(np.zeros(60), np.linspace(0, 3, 60)).astype(np.float32)  # a slope
+    rel = np.zeros((60, 60), bool)
+    rel[5:30, 5:55] = True          # a surface patch
+    rel[45:50, 20:25] = True        # an isolated blob smaller than the distance
+    rel[40:58, 40:42] = True        # a thin band along the height contour
+    lonely = unsupported_mask(h, rel, distance_px=9, tol_mm=0.1)
+    assert lonely[45:50, 20:25].all()
+    assert not lonely[5:30, 5:55].any() and not lonely[40:58, 40:42].any()
+    # the same band across the slope changes height by 0.46 mm in 9 px: not corroborated
+    band = np.zeros((60, 60), bool)
+    band[30, 5:55] = True
+    assert unsupported_mask(h, band, distance_px=9, tol_mm=0.1)[30].sum() == band[30].sum()
+
+
 def test_noise_sigma_and_noise_focus_follow_the_noise():
     from smdinspect.sff._focus import FocusOperator, focus_measure, noise_focus, noise_sigma
 
