@@ -86,11 +86,12 @@ class Progress:
         if self.bar is None:
             from tqdm import tqdm
 
-            self.bar = tqdm(total=total, desc=self.desc, unit=self.unit, file=sys.stderr,
-                            leave=False, dynamic_ncols=True, disable=None)
+            # initial=done: work finished before the first call does not count as a burst
+            # of speed (the first update showed "21399 frame/s")
+            self.bar = tqdm(total=total, initial=done, desc=self.desc, unit=self.unit,
+                            file=sys.stderr, leave=False, dynamic_ncols=True, disable=None)
         self.bar.total = total
-        self.bar.n = done
-        self.bar.refresh()
+        self.bar.update(done - self.bar.n)
         if done >= total:
             self.close()
 
