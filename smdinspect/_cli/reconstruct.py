@@ -71,6 +71,7 @@ def run(args: argparse.Namespace) -> int:
     with _atomic.replace_dir(args.out, replaces=RECONSTRUCTION_OUTPUTS) as tmp:
         surface = reconstruct(stack, config, progress=progress_callback(args, "focus"))
         surface = apply_calibration_file(surface, args.calibration)
+        log.info("writing the height maps, previews, cloud and mesh to %s", args.out)
         write_reconstruction(surface, tmp, keep_unreliable=args.keep_unreliable)
     if not surface.reliable.any():
         raise nothing_measured(len(stack), args.out)
