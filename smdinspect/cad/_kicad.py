@@ -338,7 +338,8 @@ def _copper_pads(doc: SexprDoc, fp: list, fp_angle: float):
             continue  # paste/mask-only apertures are not joints
         at = _item(pad, "at")
         px, py = _xy(doc, at, "pad at")
-        pad_angle = _num(doc, at, 3, "angle") if at is not None and len(at) > 3 else 0.0
+        pad_angle = float(at[3]) if len(at) > 3 and isinstance(at[3], (int, float)) \
+            and not isinstance(at[3], bool) else 0.0
         size = _item(pad, "size")
         w, h = _num(doc, size, 1, "size x") if size else 0.0, \
             _num(doc, size, 2, "size y", _num(doc, size, 1, "size x")) if size else 0.0
