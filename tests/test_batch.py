@@ -278,6 +278,31 @@ def test_pool_batch_reports_every_board(pool_run, stacks):
         assert len(failed) == b.defects
 
 
+def test_batch_page_and_spc_across_boards(pool_run):
+    """The batch writes spc/ (SPC across its inspected boards, in stack order) and an
+    index.html with every board's verdict linked to its report."""
+    out = pool_run.out_dir
+    assert pool_run.index_html == out / "index.html"
+    page = pool_run.index_html.read_text()
+    for name in BOARDS:
+        assert f'href="{name}/report.html"' in page
+    assert page.count("FAIL") == sum(b.status is BoardStatus.DEFECTS for b in pool_run.boards)
+    assert 'href="spc/spc.html"' in page and 'href="spc/spc.csv"' in page
+    spc = pool_run.spc
+    assert [b.label for b in spc.boards] == sorted(BOARDS)
+    with open(out / "spc" / "spc.csv", newline="") as fh:
+        rows = list(csv.DictReader(fh))
+    joints = {r["key"] for r in rows if r["scope"] == "joint"}
+    assert len(joints) == N_JOINTS and all(r["n_boards"] == "4" for r in rows)
+    r = next(r for r in rows if r["key"] == "R2.1" and r["metric"] == "max_height_mm")
+    heights = [json.loads((Path(b.out_dir) / "report.json").read_text())
+               for b in pool_run.boards]
+    h = [next(j for j in d["joints"] if j["id"] == "R2.1")["measured"]["max_height_mm"]
+         for d in heights]
+    assert float(r["mean"]) == pytest.approx(np.mean(h), rel=1e-4)
+    assert (out / "spc" / r["chart_png"]).is_file()
+
+
 def test_batch_report_is_the_pipeline_report(pool_run, stacks, tmp_path):
     """A board's batch report (one thread per board) equals a direct ``inspect_stack``
     call on two threads: the report does not depend on the thread count."""

@@ -25,6 +25,8 @@ log = logging.getLogger(__name__)
 SUMMARY_CSV = "summary.csv"
 SUMMARY_JSON = "summary.json"
 JUNIT_XML = "junit.xml"
+INDEX_HTML = "index.html"
+SPC_DIR = "spc"
 LOCK_FILE = ".smdinspect-batch.lock"
 #: Focus settings that change speed, not results: left out of the input fingerprint.
 _NEUTRAL_FOCUS_KEYS = ("workers",)
@@ -46,6 +48,11 @@ class BatchResult:
         Wall time of the whole batch.
     summary_csv, summary_json, junit : Path
         The batch-level outputs.
+    index_html : Path or None
+        ``index.html``: every board's verdict linked to its report, and the SPC summary.
+    spc : smdinspect.inspect.SpcAnalysis or None
+        SPC across the inspected boards (written to ``spc/``), when there were at least
+        two and ``spc`` was on.
     """
 
     boards: tuple[BoardResult, ...]
@@ -55,6 +62,10 @@ class BatchResult:
     summary_csv: Path
     summary_json: Path
     junit: Path
+    #: The batch page (every board's verdict, the SPC summary); None if not written.
+    index_html: Path | None = None
+    #: SPC across the inspected boards (``spc/spc.csv``, charts); None when not computed.
+    spc: Any = None
 
     @property
     def exit_code(self) -> int:
@@ -139,6 +150,7 @@ def run_batch(
     inspect_config: Any = None,
     keep_unreliable: bool = False,
     html: bool = True,
+    spc: bool = True,
     progress: Callable[[int, int], None] | None = None,
     board_progress: Callable[[str, str, int, int], None] | None = None,
     inspect_fn: str = DEFAULT_INSPECT_FN,
@@ -199,6 +211,11 @@ def run_batch(
         Passed to the pipeline (unreliable points kept in cloud and mesh).
     html : bool
         Write each board's ``report.html`` (``False`` is passed on as ``html=False``).
+    spc : bool
+        After the boards, compute SPC across the inspected ones (at least two) into
+        ``out_dir/spc/`` (see :func:`smdinspect.inspect.analyse_reports`; boards in
+        stack-name order), and write ``out_dir/index.html`` with every board's verdict
+        either way. SPC flags do not change the exit code.
     progress : callable(done, total), optional
         Called with the number of boards finished (skipped ones included).
     board_progress : callable(stack, stage, done, total), optional
@@ -259,7 +276,8 @@ def run_batch(
     for name, path in stacks:
         if _is_within(o_real, path.resolve()):
             raise InputError(f"the report folder {out_dir} lies inside the stack {path}")
-        if name in (SUMMARY_CSV, SUMMARY_JSON, JUNIT_XML):
+        if name in (SUMMARY_CSV, SUMMARY_JSON, JUNIT_XML, INDEX_HTML) \
+                or name.split("/", 1)[0] == SPC_DIR:
             raise InputError(f"stack folder name {name!r} clashes with a batch output file")
 
     board_obj = load_board(board)
@@ -350,7 +368,35 @@ def run_batch(
         merge_junit(result.junit, boards)
         write_summary_csv(result.summary_csv, boards)
         write_summary_json(result.summary_json, boards, header)
+        result = _batch_pages(result, spc=spc)
     return result
+
+
+def _batch_pages(result: BatchResult, *, spc: bool) -> BatchResult:
+    """SPC across the inspected boards (``spc/``) and ``index.html``; a problem here is
+    logged, never fails the batch."""
+    from ..inspect._spc_report import analyse_reports, write_batch_page, write_spc
+
+    analysis, note = None, ""
+    inspected = [b for b in result.boards if b.status is not BoardStatus.ERROR]
+    if spc and len(inspected) >= 2:
+        try:
+            analysis = analyse_reports([b.out_dir for b in inspected],
+                                       labels=[b.stack for b in inspected], order="name")
+            write_spc(analysis, result.out_dir / SPC_DIR)
+        except (InputError, OSError, ValueError) as exc:
+            log.warning("SPC across the boards not computed: %s", exc)
+            analysis, note = None, f"not computed: {exc}"
+    elif spc:
+        note = "needs at least 2 inspected boards"
+    try:
+        page = write_batch_page(result.out_dir / INDEX_HTML, [b.to_row() for b in result.boards],
+                                title=f"smdinspect batch: {len(result.boards)} boards",
+                                spc=analysis, spc_dir=SPC_DIR, note=note)
+    except OSError as exc:
+        log.warning("cannot write %s: %s", result.out_dir / INDEX_HTML, exc)
+        page = None
+    return dataclasses.replace(result, index_html=page, spc=analysis)
 
 
 def _lost(job: BoardJob) -> BoardResult:  # pragma: no cover - executors report every job

@@ -101,6 +101,9 @@ def register(sub: argparse._SubParsersAction) -> None:
                    help="joints with a smaller fraction of reliable pixels are 'unreliable' "
                         f"(default {InspectConfig.min_reliable_fraction})")
     f.add_argument("--no-html", action="store_true", help="skip each board's report.html")
+    p.add_argument("--no-spc", action="store_true",
+                   help="skip SPC across the boards (REPORTS_DIR/spc/: spc.csv, control "
+                        "charts, run rules; see `smdinspect spc`)")
     p.set_defaults(func=run)
 
 
@@ -135,7 +138,7 @@ def run(args: argparse.Namespace) -> int:
                         dask_workers=args.dask_local, tls=tls, force=args.force,
                         focus_config=focus, inspect_config=inspect_config_from(args),
                         keep_unreliable=args.keep_unreliable, html=not args.no_html,
-                        progress=bar.boards, board_progress=bar.board)
+                        spc=not args.no_spc, progress=bar.boards, board_progress=bar.board)
     finally:
         bar.close()
     c = res.counts()
@@ -149,7 +152,13 @@ def run(args: argparse.Namespace) -> int:
         print(f"  {b.stack}: {b.status.value} (exit {b.exit_code}) {b.reason}")
     if len(bad) > _MAX_LISTED:
         print(f"  ... and {len(bad) - _MAX_LISTED} more (see summary.csv)")
-    print(f"summary: {res.summary_csv}  junit: {res.junit}")
+    if res.spc is not None:
+        drifting = sorted({s.key for s in res.spc.flagged() if s.scope == "joint"})
+        print(f"SPC over {len(res.spc.boards)} boards: {len(drifting)} joint(s) with a run "
+              f"rule firing" + (f" ({', '.join(drifting[:8])}"
+                                + (", ..." if len(drifting) > 8 else "") + ")" if drifting else ""))
+    print(f"summary: {res.summary_csv}  junit: {res.junit}"
+          + (f"  page: {res.index_html}" if res.index_html else ""))
     return res.exit_code
 
 

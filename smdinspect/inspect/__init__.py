@@ -25,9 +25,12 @@ from ._reference import (
 from ._register import RegistrationResult, masked_ncc, register_board
 from ._report import REPORT_FILES, report_dict, write_reports
 from ._result import ComponentResult, InspectionResult, JointResult
+from ._spc import RULES, capability, individuals_chart, run_rules, xbar_r_chart
+from ._spc_report import SpcAnalysis, analyse_reports, write_spc
 
 __all__ = [
     "REPORT_FILES",
+    "RULES",
     "Board",
     "BoardPlane",
     "Component",
@@ -39,9 +42,13 @@ __all__ = [
     "Joint",
     "JointResult",
     "RegistrationResult",
+    "SpcAnalysis",
     "Verdict",
+    "analyse_reports",
     "body_top_mm",
+    "capability",
     "fit_board_plane",
+    "individuals_chart",
     "inspect_surface",
     "load_board",
     "masked_ncc",
@@ -51,5 +58,8 @@ __all__ = [
     "register_board",
     "render_reference",
     "report_dict",
+    "run_rules",
     "write_reports",
+    "write_spc",
+    "xbar_r_chart",
 ]
