@@ -1,6 +1,6 @@
 """Per-pixel confidence in [0, 1] from the fitted focus peak.
 
-Four cues, each mapped to [0, 1] by a smooth ramp and multiplied (R over the fit's
+Five cues, each mapped to [0, 1] by a smooth ramp and multiplied (R over the fit's
 support only: a 3-sample fit is exact and R does not judge it):
 
 * **Reliability R** (Pertuz et al.): 20·log10(F_peak / mean|F − model|) over the ±k
@@ -19,6 +19,11 @@ support only: a 3-sample fit is exact and R does not judge it):
   second peak). Flat, textureless curves have A near 1; a second peak (a defocused
   edge of a taller part bleeding over low texture) gives a large A. Ramp from 1 at
   A = 0.35 to 0 at 0.7.
+
+* **Second mode**: within ±k frames, the largest rise of the curve after a dip, over
+  A. One surface point has a unimodal focus curve; two modes mean two depths in the
+  window (a defocused edge's blur next to weak texture) or noise, and in a short stack
+  (7 frames, k = 3) the ambiguity above sees nothing. Ramp from 1 at 0.15 to 0 at 0.35.
 
 Finally, **depth edges**: a focus window that straddles a height step mixes two depths,
 and the sharp edge of the higher part (a component body) wins over the weak texture of
@@ -46,6 +51,7 @@ __all__ = ["confidence_map", "depth_edge_mask", "halo_mask", "unsupported_mask"]
 R_LOW_DB, R_HIGH_DB = 14.0, 26.0
 WIDTH_OK, WIDTH_BAD = 2.0, 4.0
 AMBIG_OK, AMBIG_BAD = 0.35, 0.70
+SECOND_OK, SECOND_BAD = 0.15, 0.35
 SNR_BAD, SNR_OK = 1.2, 2.2
 
 
@@ -76,7 +82,7 @@ def confidence_map(fit: PeakFit, *, window_px: int = 9) -> np.ndarray:
 
 
 def confidence_cues(fit: PeakFit, *, window_px: int = 9) -> dict[str, np.ndarray]:
-    """The four cues of :func:`confidence_map`, each (H, W) in [0, 1].
+    """The five cues of :func:`confidence_map`, each (H, W) in [0, 1].
 
     The noise test: on a textureless pixel the focus curve is the
     sensor noise's focus measure, whose frame-to-frame spread relative to its mean falls
@@ -97,6 +103,7 @@ def confidence_cues(fit: PeakFit, *, window_px: int = 9) -> dict[str, np.ndarray
         snr = np.nan_to_num(fit.f_best / fit.floor, nan=0.0, posinf=1e6) * (window_px / 9.0)
     return {"reliability": c_r, "width": c_w,
             "ambiguity": _ramp(fit.ambiguity, AMBIG_BAD, AMBIG_OK),
+            "second_mode": _ramp(fit.second_mode, SECOND_BAD, SECOND_OK),
             "noise": _ramp(snr, SNR_BAD, SNR_OK)}
 
 

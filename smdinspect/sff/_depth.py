@@ -135,6 +135,7 @@ class PeakFit:
     sigma_mm: np.ndarray  # float32, fitted width σ_F; NaN where the fit is inverted
     reliability_db: np.ndarray  # float32, Pertuz's R of the fit over ±k frames
     ambiguity: np.ndarray  # float32 in [0, 1]: excess focus away from the peak / A
+    second_mode: np.ndarray  # float32 in [0, 1]: largest rise after a dip within ±k / A
     interior: np.ndarray  # bool: peak not on the first/last frame and fit not inverted
     best_idx: np.ndarray  # int16
 
@@ -283,6 +284,16 @@ def _fit_block(best_idx, window, alternative, best, floor, z_mm, *, k: int,
         tail = np.where(inverted | on_edge, 0.0, model(np.float32(k + 0.5) + offset) / amp)
         ambiguity = np.clip((alternative - floor) / np.maximum(amp, _TINY) - tail,
                             0, 1).astype(np.float32)
+        # A second mode within ±k: the largest rise after a dip on either side of the
+        # peak, over A (one surface point has a unimodal curve; in a short stack ±k may
+        # be the whole curve, and beyond it there is nothing for ``ambiguity``).
+        second = np.zeros_like(y0)
+        for side in (range(k - 1, -1, -1), range(k + 1, 2 * k + 1)):
+            low = y0.copy()
+            for j in side:
+                second = np.fmax(second, y[j] - low)
+                low = np.fmin(low, y[j])
+        second = np.clip(second / np.maximum(amp, _TINY), 0, 1).astype(np.float32)
     return PeakFit(
         height_mm=height,
         coarse_mm=z0.astype(np.float32),
@@ -292,6 +303,7 @@ def _fit_block(best_idx, window, alternative, best, floor, z_mm, *, k: int,
         sigma_mm=sigma,
         reliability_db=rel,
         ambiguity=ambiguity,
+        second_mode=second,
         interior=~bad,
         best_idx=best_idx,
     )

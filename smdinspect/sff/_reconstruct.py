@@ -216,7 +216,10 @@ def _level(tracker: PeakTracker, z_mm: np.ndarray, config: FocusConfig, *, windo
     halo = np.zeros(tracker.shape, bool)
     if config.halo_ratio > 0:
         frame_pos = np.interp(fit.height_mm, z_mm, np.arange(len(z_mm), dtype=np.float64))
-        halo = halo_mask(fit.f_best, frame_pos, confidence >= config.min_confidence,
+        # a sharp edge whose peak lies on the first or last frame (beyond the sweep)
+        # spreads its blur like any other: it may explain its neighbours' peaks
+        on_end = (fit.best_idx == 0) | (fit.best_idx == len(z_mm) - 1)
+        halo = halo_mask(fit.f_best, frame_pos, (confidence >= config.min_confidence) | on_end,
                          radius_px=halo_radius_px, ratio=config.halo_ratio)
         confidence[halo] = 0.0
     return fit, confidence, halo

@@ -153,6 +153,24 @@ def test_unsupported_mask_keeps_surfaces_and_drops_blobs():
     assert unsupported_mask(h, band, distance_px=9, tol_mm=0.1)[30].sum() == band[30].sum()
 
 
+def test_a_second_mode_within_the_window_makes_a_peak_unreliable():
+    """7 frames, k = 3: the whole curve is the window, so only the within-window test can
+    see that the curve dips and rises again (two depths in the window)."""
+    from smdinspect.sff import PeakTracker, confidence_map, fit_peaks
+
+    curves = np.array([[0.3, 0.5, 0.9, 4.2, 3.1, 1.1, 0.7],    # one clean peak
+                       [3.6, 0.4, 1.0, 6.4, 3.0, 1.2, 0.3]],   # dips, rises again at 0
+                      np.float32)
+    tracker = PeakTracker((1, 2), 7, half_width=3)
+    for i in range(7):
+        tracker.update(i, curves[:, i].reshape(1, 2).copy())
+    tracker.finish()
+    fit = fit_peaks(tracker, np.arange(7.0) * 0.1, method="power", power=2.0)
+    assert fit.second_mode[0, 0] < 0.05 and fit.second_mode[0, 1] > 0.35
+    conf = confidence_map(fit)
+    assert conf[0, 0] >= 0.5 > conf[0, 1]
+
+
 def test_noise_sigma_and_noise_focus_follow_the_noise():
     from smdinspect.sff._focus import FocusOperator, focus_measure, noise_focus, noise_sigma
 
