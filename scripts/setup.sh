@@ -3,18 +3,19 @@
 #  1. the system libraries Open3D needs that a minimal machine lacks (libusb-1.0-0,
 #     libgl1, libgomp1) and those VTK needs to render the 3D view offscreen without a
 #     GPU or display (EGL with Mesa's software rasteriser: libegl1, libegl-mesa0,
-#     libgl1-mesa-dri), through apt-get, only those that are missing;
+#     libgl1-mesa-dri), and chromium, the headless browser the report tests render
+#     report.html in, through apt-get, only those that are missing;
 #  2. a virtual environment in .venv with smdinspect and its test extras installed.
 # Safe to run again: it installs only what is missing.
 set -euo pipefail
 cd "$(dirname "$0")/.."
 
 missing=()
-for pkg in libusb-1.0-0 libgl1 libgomp1 libegl1 libegl-mesa0 libgl1-mesa-dri; do
+for pkg in libusb-1.0-0 libgl1 libgomp1 libegl1 libegl-mesa0 libgl1-mesa-dri chromium; do
     dpkg-query -W -f='${Status}' "$pkg" 2>/dev/null | grep -q "install ok installed" || missing+=("$pkg")
 done
 if [ ${#missing[@]} -gt 0 ]; then
-    echo "setup: installing Debian packages needed by open3d and vtk: ${missing[*]}"
+    echo "setup: installing Debian packages needed by open3d, vtk and the report tests: ${missing[*]}"
     sudo=""
     [ "$(id -u)" -eq 0 ] || sudo="sudo"
     $sudo apt-get update -qq
