@@ -147,7 +147,7 @@ def halo_mask(amplitude: np.ndarray, frame_pos: np.ndarray, candidate: np.ndarra
     amplitude A_p is small against the edge's A_q. A pixel is flagged when some
     ``candidate`` neighbour q within ``radius_px`` has its peak at least ``min_frames``
     frames away and ``A_q > ratio · A_p``. Computed on a grid reduced so that the
-    radius is about 8 cells, one max-filter per frame bin: cheap at any frame count.
+    radius is about 4 cells, one max-filter per frame bin: cheap at any frame count.
 
     Parameters
     ----------
@@ -162,9 +162,9 @@ def halo_mask(amplitude: np.ndarray, frame_pos: np.ndarray, candidate: np.ndarra
     import cv2
 
     h, w = amplitude.shape
-    s = max(1, radius_px // 8)
+    s = max(1, radius_px // 4)
     hs, ws = -(-h // s), -(-w // s)
-    rs = max(1, -(-radius_px // s))
+    rs = max(1, radius_px // s)  # max-pooling into cells adds up to s - 1 px of reach
     disk = cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (2 * rs + 1, 2 * rs + 1))
     bins = np.clip(np.round(frame_pos), 0, None).astype(np.int32)
     bins[~np.isfinite(frame_pos)] = 0

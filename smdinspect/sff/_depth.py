@@ -313,28 +313,42 @@ def _weighted_parabola(u: list[np.ndarray], q: list[np.ndarray], wt: list[np.nda
     """Per-pixel weighted least squares q = a + b·u + c·u².
 
     ``u``, ``q``, ``wt`` are lists of (H, W) float32 samples (NaN where missing; weights
-    below 1e-8 of the largest count as missing). The 3 × 3 normal equations are solved
-    by Cramer's rule in float64. Returns ``(c, b, a)`` as float32; NaN where fewer than
-    3 samples carry weight.
+    below 1e-8 of the largest count as missing). The weights are scaled by each pixel's
+    largest, q by its value at the largest weight, and u is in frame steps (|u| <= k),
+    so the moments stay O(1) and float32 suffices; the 3 × 3 normal equations are
+    solved by Cramer's rule in float64. Returns ``(c, b, a)`` as float32; NaN where
+    fewer than 3 samples carry weight.
     """
     shape = u[0].shape
-    s = [np.zeros(shape, np.float64) for _ in range(5)]
-    t = [np.zeros(shape, np.float64) for _ in range(3)]
+    f32 = np.float32
+    s = [np.zeros(shape, f32) for _ in range(5)]
+    t = [np.zeros(shape, f32) for _ in range(3)]
     count = np.zeros(shape, np.int16)
     top = np.fmax.reduce(wt)
+    with np.errstate(divide="ignore", invalid="ignore"):
+        inv_top = np.where(top > 0, 1.0 / top, 0).astype(f32)
+        # q at the sample of largest weight (the peak): q / q_ref is O(1)
+        q_ref = np.zeros(shape, f32)
+        for qj, wj in zip(q, wt):
+            np.copyto(q_ref, qj, where=(wj == top) & np.isfinite(qj))
+        q_ref = np.where((q_ref != 0) & np.isfinite(q_ref), q_ref, 1).astype(f32)
     for uj, qj, wj in zip(u, q, wt):
-        ok = np.isfinite(uj) & np.isfinite(qj) & (wj > 1e-8 * top)
-        p = np.where(ok, wj, 0.0).astype(np.float64)
-        uu = np.where(ok, uj, 0.0).astype(np.float64)
-        qq = np.where(ok, qj, 0.0).astype(np.float64)
+        p = wj * inv_top
+        ok = np.isfinite(uj) & np.isfinite(qj) & (p > 1e-8)
+        p = np.where(ok, p, f32(0))
+        uu = np.where(ok, uj, f32(0))
+        qq = np.where(ok, qj / q_ref, f32(0))
         count += ok
+        t[0] += p * qq
         for m in range(5):
             s[m] += p
-            if m < 3:
-                t[m] += p * qq
+            if m == 4:
+                break
             p *= uu
-    s0, s1, s2, s3, s4 = s
-    t0, t1, t2 = t
+            if m < 2:
+                t[m + 1] += p * qq
+    s0, s1, s2, s3, s4 = (a.astype(np.float64) for a in s)
+    t0, t1, t2 = (a.astype(np.float64) for a in t)
     # Cramer's rule on [[s0 s1 s2][s1 s2 s3][s2 s3 s4]]·[a b c] = [t0 t1 t2]
     m00 = s2 * s4 - s3 * s3
     m01 = s1 * s4 - s2 * s3
@@ -342,8 +356,9 @@ def _weighted_parabola(u: list[np.ndarray], q: list[np.ndarray], wt: list[np.nda
     det = s0 * m00 - s1 * m01 + s2 * m02
     ok = (count >= 3) & (np.abs(det) > 1e-9 * np.maximum(s0, 1e-300) ** 3)
     det = np.where(ok, det, 1.0)
-    a = (t0 * m00 - s1 * (t1 * s4 - s3 * t2) + s2 * (t1 * s3 - s2 * t2)) / det
-    b = (s0 * (t1 * s4 - s3 * t2) - t0 * m01 + s2 * (s1 * t2 - t1 * s2)) / det
-    c = (s0 * (s2 * t2 - t1 * s3) - s1 * (s1 * t2 - t1 * s2) + t0 * m02) / det
+    scale = q_ref.astype(np.float64) / det
+    a = (t0 * m00 - s1 * (t1 * s4 - s3 * t2) + s2 * (t1 * s3 - s2 * t2)) * scale
+    b = (s0 * (t1 * s4 - s3 * t2) - t0 * m01 + s2 * (s1 * t2 - t1 * s2)) * scale
+    c = (s0 * (s2 * t2 - t1 * s3) - s1 * (s1 * t2 - t1 * s2) + t0 * m02) * scale
     c = np.where(ok, c, np.nan)
     return c.astype(np.float32), b.astype(np.float32), a.astype(np.float32)

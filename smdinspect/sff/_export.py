@@ -63,12 +63,22 @@ def surface_point_cloud(surface: Surface, *, keep_unreliable: bool = False):
 
 
 def write_point_cloud(surface: Surface, path: str | Path, *, keep_unreliable: bool = False) -> Path:
-    """Write ``cloud.ply``: binary PLY with x, y, z (mm), red/green/blue, confidence."""
-    o3d = _require("open3d")
-    pcd = surface_point_cloud(surface, keep_unreliable=keep_unreliable)
+    """Write ``cloud.ply``: binary little-endian PLY with float x, y, z (mm), uchar
+    red/green/blue and float confidence per vertex (read by Open3D, trimesh, MeshLab,
+    CloudCompare). Written with plyfile: importing Open3D only to write would cost more
+    than the write."""
+    plyfile = _require("plyfile")
+    xyz, rgb, conf, _ = surface.points(keep_unreliable=keep_unreliable)
+    vertex = np.empty(len(xyz), dtype=[("x", "<f4"), ("y", "<f4"), ("z", "<f4"), ("red", "u1"),
+                                       ("green", "u1"), ("blue", "u1"), ("confidence", "<f4")])
+    for i, axis in enumerate("xyz"):
+        vertex[axis] = xyz[:, i]
+    for i, channel in enumerate(("red", "green", "blue")):
+        vertex[channel] = np.round(rgb[:, i] * 255)
+    vertex["confidence"] = conf
+    ply = plyfile.PlyData([plyfile.PlyElement.describe(vertex, "vertex")], byte_order="<")
     with _atomic.atomic_path(path) as tmp:
-        if not o3d.t.io.write_point_cloud(str(tmp), pcd, write_ascii=False):
-            raise OSError(f"open3d could not write {path}")
+        ply.write(str(tmp))
     return Path(path)
 
 
