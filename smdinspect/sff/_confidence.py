@@ -177,16 +177,12 @@ def halo_mask(amplitude: np.ndarray, frame_pos: np.ndarray, candidate: np.ndarra
     members = [order[starts[b]:starts[b + 1]] for b in range(nb)]
     cell = ((np.arange(h) // s)[:, None] * ws + (np.arange(w) // s)[None, :]).ravel()
     has_candidate = [bool(strong[m].any()) for m in members]
-    pad = np.zeros(hs * s * ws * s, np.float32)
-    pad2 = pad.reshape(hs * s, ws * s)
-    flat = (np.arange(h)[:, None] * (ws * s) + np.arange(w)[None, :]).ravel()
 
     def spread(b: int) -> np.ndarray:
         """Bin b's candidate amplitudes, max-pooled to cells and dilated by the radius."""
-        pad.fill(0)
-        pad[flat[members[b]]] = strong[members[b]]
-        pooled = pad2 if s == 1 else pad2.reshape(hs, s, ws, s).max(axis=(1, 3))
-        return cv2.dilate(pooled, disk).ravel()
+        pooled = np.zeros(hs * ws, np.float32)
+        np.maximum.at(pooled, cell[members[b]], strong[members[b]])
+        return cv2.dilate(pooled.reshape(hs, ws), disk).ravel()
 
     dom = np.zeros(h * w, np.float32)
     # one pass upwards (neighbours >= gap bins lower), one downwards; memory: gap arrays

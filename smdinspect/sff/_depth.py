@@ -28,6 +28,8 @@ __all__ = ["PeakFit", "PeakTracker", "fit_peaks"]
 _TINY = np.float32(1e-12)
 #: Samples beyond ±1 frame join the fit while above this fraction of the peak.
 SUPPORT_FRACTION = 0.2
+#: Pixels fitted at once per thread by :func:`fit_peaks` (bounds its memory).
+FIT_BLOCK_PX = 1 << 18
 #: Reliability (dB) reported for a peak fitted exactly through its 3 samples.
 R_EXACT_DB = 60.0
 
@@ -165,16 +167,19 @@ def fit_peaks(tracker: PeakTracker, z_mm: np.ndarray, *, method: FitMethod,
     power : float
         p of the ``power`` model (:attr:`FocusOperator.curve_power`).
     workers : int
-        Threads; the rows are split into this many blocks (numpy releases the GIL).
+        Threads fitting blocks of rows of about ``FIT_BLOCK_PX`` pixels (numpy releases
+        the GIL; the blocks bound the memory of the temporaries).
     """
-    h = tracker.shape[0]
+    h, w = tracker.shape
     alternative = tracker.alternative
     args = (tracker.best_idx, tracker.window, alternative, tracker.best, tracker.floor)
-    if workers <= 1 or h < 64:
+    rows = max(16, FIT_BLOCK_PX // max(w, 1))
+    if h <= rows:
         return _fit_block(*args, z_mm, k=tracker.k, method=method, power=power)
     from concurrent.futures import ThreadPoolExecutor
 
-    edges = np.linspace(0, h, workers + 1).astype(int)
+    # blocks of rows bound the fit's temporaries (some 40 arrays of the block's size)
+    edges = np.append(np.arange(0, h, rows), h)
     # Each thread writes its rows straight into the full-size results (no concatenation).
     dtypes = {"interior": bool, "best_idx": np.int16}
     out = {f: np.empty(tracker.shape, dtypes.get(f, np.float32)) for f in PeakFit.__dataclass_fields__}
@@ -185,7 +190,7 @@ def fit_peaks(tracker: PeakTracker, z_mm: np.ndarray, *, method: FitMethod,
         for f, a in out.items():
             a[r0:r1] = getattr(part, f)
 
-    with ThreadPoolExecutor(workers) as pool:
+    with ThreadPoolExecutor(max(1, workers)) as pool:
         list(pool.map(run, edges[:-1], edges[1:]))
     return PeakFit(**out)
 

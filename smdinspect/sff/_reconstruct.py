@@ -5,7 +5,7 @@ from __future__ import annotations
 import collections
 import logging
 import time
-from concurrent.futures import ThreadPoolExecutor
+from concurrent.futures import Future, ThreadPoolExecutor
 from typing import Callable
 
 import cv2
@@ -27,6 +27,8 @@ log = logging.getLogger(__name__)
 Progress = Callable[[int, int], None]
 #: Every frame is scaled to this mean grey level before its focus measure.
 MEAN_GREY = 128.0
+#: Decoded frames the alignment pre-pass may keep for the main pass (bytes).
+FRAME_CACHE_BYTES = 256 * 2**20
 
 
 def to_gray(image: np.ndarray) -> np.ndarray:
@@ -75,15 +77,35 @@ def reconstruct(
     n = len(stack)
     z_mm = stack.z_mm
     alignment: Alignment | None = None
+    # frames decoded by the alignment pre-pass, kept (up to FRAME_CACHE_BYTES) for the
+    # main pass instead of being decoded twice
+    cache: dict[int, np.ndarray] = {}
+    pool = ThreadPoolExecutor(max_workers=config.workers, thread_name_prefix="sff")
     if config.align:
-        alignment = estimate_alignment(lambda i: to_gray(stack.read_frame(i)), n)
+        cached = [0]
+
+        def read(i: int) -> np.ndarray:
+            image = stack.read_frame(i)
+            if cached[0] + image.nbytes <= FRAME_CACHE_BYTES:
+                cache[i] = image
+                cached[0] += image.nbytes
+            return image
+
+        reads = _prefetch(read, n, pool, depth=config.workers + 1)
+        try:
+            alignment = estimate_alignment(lambda i: to_gray(reads(i)), n)
+        except BaseException:
+            pool.shutdown(cancel_futures=True)
+            raise
         log.info("aligned %d frames onto frame %d (the most magnified); field %.1f %% of it",
                  n, alignment.reference, 100 * alignment.field.mean())
     first = stack.frames[0].path
     operator = FocusOperator(config.operator)
 
     def load(i: int):
-        image = stack.read_frame(i)
+        image = cache.pop(i, None)
+        if image is None:
+            image = stack.read_frame(i)
         gray = to_gray(image)
         mean = float(gray.mean())
         # Same mean grey in every frame: exposure drift, flicker and auto-gain change the
@@ -114,7 +136,7 @@ def reconstruct(
     aif = None
     ref_shape = None
     depth = config.workers + 2  # frames in flight; bounds memory
-    with ThreadPoolExecutor(max_workers=config.workers, thread_name_prefix="sff") as pool:
+    with pool:
         pending: collections.deque = collections.deque()
         next_i = 0
         for i in range(n):
@@ -204,6 +226,21 @@ def reconstruct(
         field=field,
         meta=meta,
     )
+
+
+def _prefetch(read: Callable[[int], np.ndarray], n: int, pool: ThreadPoolExecutor, *,
+              depth: int) -> Callable[[int], np.ndarray]:
+    """``read`` for indices asked in ascending order, with the next ``depth`` frames
+    already being decoded in ``pool``."""
+    futures: dict[int, Future] = {}
+
+    def get(i: int) -> np.ndarray:
+        for j in range(i, min(n, i + depth + 1)):
+            if j not in futures:
+                futures[j] = pool.submit(read, j)
+        return futures.pop(i).result()
+
+    return get
 
 
 def _level(tracker: PeakTracker, z_mm: np.ndarray, config: FocusConfig, *, window_px: int,
