@@ -50,6 +50,11 @@ def register(sub: argparse._SubParsersAction) -> None:
                        description="Measure every pixel's height by shape from focus.")
     add_stack_arguments(p)
     p.add_argument("--out", required=True, type=Path, help="output directory")
+    p.add_argument("--outputs", default="all", metavar="LIST",
+                   help="comma-separated files to write (default all): height_mm.tiff, "
+                        "confidence.tiff, sigma_mm.tiff, aif.png, height_filled_mm.tiff, "
+                        "sigma_filled_mm.tiff, filled.png, field.png, height.png, view3d.png, "
+                        "cloud.ply, mesh.ply, mesh.stl; summary.json is always written")
     p.add_argument("--calibration", type=Path, default=None, metavar="CAL_JSON",
                    help="rig calibration (smdinspect calibrate): subtract its focal-plane "
                         "tilt/curvature")
@@ -62,8 +67,15 @@ def run(args: argparse.Namespace) -> int:
     from ..cli import progress_callback
     from ..sff import reconstruct, write_reconstruction
     from ..sff._export import RECONSTRUCTION_OUTPUTS
+    from ..errors import InputError
     from ..stack import open_stack
 
+    outputs = None if args.outputs.strip() == "all" else \
+        [name.strip() for name in args.outputs.split(",") if name.strip()]
+    unknown = sorted(set(outputs or ()) - set(RECONSTRUCTION_OUTPUTS))
+    if unknown:
+        raise InputError(f"--outputs: unknown {', '.join(unknown)}; choose from "
+                         f"{', '.join(RECONSTRUCTION_OUTPUTS)} (or all)")
     config = focus_config_from(args)
     stack = open_stack(args.stack, step_mm=args.step_mm, pixel_size_mm=args.pixel_size_mm)
     if stack.pixel_size_mm is None:
@@ -72,14 +84,16 @@ def run(args: argparse.Namespace) -> int:
         surface = reconstruct(stack, config, progress=progress_callback(args, "focus"))
         surface = apply_calibration_file(surface, args.calibration)
         log.info("writing the height maps, previews, cloud and mesh to %s", args.out)
-        write_reconstruction(surface, tmp, keep_unreliable=args.keep_unreliable)
+        write_reconstruction(surface, tmp, keep_unreliable=args.keep_unreliable,
+                             outputs=outputs)
     if not surface.reliable.any():
         raise nothing_measured(len(stack), args.out)
     h = surface.height_mm[surface.reliable]
     print(f"reconstructed {len(stack)} frames, {surface.shape[1]}x{surface.shape[0]} px: "
           f"coverage {100 * surface.coverage:.1f}%, heights {h.min():.3f} .. {h.max():.3f} mm, "
           f"{surface.meta['mpixel_per_s']:.0f} Mpixel/s")
-    print(f"outputs in {args.out}/ (open view3d.png first)")
+    hint = " (open view3d.png first)" if outputs is None or "view3d.png" in outputs else ""
+    print(f"outputs in {args.out}/{hint}")
     return 0
 
 

@@ -9,7 +9,7 @@ from __future__ import annotations
 import logging
 import time
 from pathlib import Path
-from typing import Any
+from typing import Any, Callable, Collection
 
 import numpy as np
 
@@ -200,6 +200,11 @@ def render_view3d_png(surface: Surface, path: str | Path, *, max_side: int = 384
     return Path(path)
 
 
+def _export_mesh(mesh, path: Path) -> None:
+    with _atomic.atomic_path(path) as tmp:
+        mesh.export(tmp)
+
+
 def write_reconstruction(
     surface: Surface,
     out_dir: str | Path,
@@ -207,8 +212,9 @@ def write_reconstruction(
     keep_unreliable: bool = False,
     previews: bool = True,
     extra_summary: dict[str, Any] | None = None,
+    outputs: Collection[str] | None = None,
 ) -> dict[str, Path]:
-    """Write every output of a reconstruction into ``out_dir``.
+    """Write the outputs of a reconstruction into ``out_dir`` (all by default).
 
     Files: ``height_mm.tiff`` (float32, every pixel), ``confidence.tiff`` (float32,
     [0, 1]), ``sigma_mm.tiff`` (float32, fitted focus-peak width σ_F, NaN where the fit
@@ -222,37 +228,49 @@ def write_reconstruction(
     (the dense surface would be all fill): ``summary.json`` says ``"measured": false``
     (logged); the maps and previews show what the stack holds.
 
+    ``outputs`` names the files to write (from :data:`RECONSTRUCTION_OUTPUTS`);
+    ``summary.json`` is always written.
+
     Returns
     -------
     dict
         Name → path of every file written.
     """
     t0 = time.perf_counter()
+    wanted = set(RECONSTRUCTION_OUTPUTS if outputs is None else outputs) | {"summary.json"}
+    unknown = sorted(wanted - set(RECONSTRUCTION_OUTPUTS))
+    if unknown:
+        raise InputError(f"unknown output {', '.join(unknown)}; choose from "
+                         f"{', '.join(RECONSTRUCTION_OUTPUTS)}")
+    if not previews:
+        wanted -= {"height.png", "view3d.png"}
     out = Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)
     paths: dict[str, Path] = {}
-    paths["height_mm.tiff"] = _atomic.write_tiff(out / "height_mm.tiff", surface.height_mm.astype(np.float32))
-    paths["confidence.tiff"] = _atomic.write_tiff(out / "confidence.tiff", surface.confidence.astype(np.float32))
-    paths["sigma_mm.tiff"] = _atomic.write_tiff(out / "sigma_mm.tiff", surface.sigma_mm.astype(np.float32))
-    paths["aif.png"] = _atomic.write_image(out / "aif.png", _png_ready(surface.aif))
-    dense_h, filled, dense_sigma = surface.dense
-    paths["height_filled_mm.tiff"] = _atomic.write_tiff(out / "height_filled_mm.tiff", dense_h)
-    paths["sigma_filled_mm.tiff"] = _atomic.write_tiff(out / "sigma_filled_mm.tiff", dense_sigma)
-    paths["filled.png"] = _atomic.write_image(out / "filled.png", filled.astype(np.uint8) * 255)
-    paths["field.png"] = _atomic.write_image(out / "field.png", surface.field.astype(np.uint8) * 255)
-    if previews:
-        paths["height.png"] = render_height_png(surface, out / "height.png")
-        paths["view3d.png"] = render_view3d_png(surface, out / "view3d.png")
+
+    def put(name: str, write: Callable[[Path], Any]) -> None:
+        if name in wanted:
+            write(out / name)
+            paths[name] = out / name
+
+    put("height_mm.tiff", lambda p: _atomic.write_tiff(p, surface.height_mm.astype(np.float32)))
+    put("confidence.tiff", lambda p: _atomic.write_tiff(p, surface.confidence.astype(np.float32)))
+    put("sigma_mm.tiff", lambda p: _atomic.write_tiff(p, surface.sigma_mm.astype(np.float32)))
+    put("aif.png", lambda p: _atomic.write_image(p, _png_ready(surface.aif)))
+    put("height_filled_mm.tiff", lambda p: _atomic.write_tiff(p, surface.dense[0]))
+    put("sigma_filled_mm.tiff", lambda p: _atomic.write_tiff(p, surface.dense[2]))
+    put("filled.png", lambda p: _atomic.write_image(p, surface.dense[1].astype(np.uint8) * 255))
+    put("field.png", lambda p: _atomic.write_image(p, surface.field.astype(np.uint8) * 255))
+    put("height.png", lambda p: render_height_png(surface, p))
+    put("view3d.png", lambda p: render_view3d_png(surface, p))
     measured = bool(surface.reliable.any())
     mesh = None
     if measured:
-        paths["cloud.ply"] = write_point_cloud(surface, out / "cloud.ply",
-                                               keep_unreliable=keep_unreliable)
-        mesh = height_field_mesh(surface, keep_unreliable=keep_unreliable)
-        for name in ("mesh.ply", "mesh.stl"):
-            with _atomic.atomic_path(out / name) as tmp:
-                mesh.export(tmp)
-            paths[name] = out / name
+        put("cloud.ply", lambda p: write_point_cloud(surface, p, keep_unreliable=keep_unreliable))
+        if wanted & {"mesh.ply", "mesh.stl"}:
+            mesh = height_field_mesh(surface, keep_unreliable=keep_unreliable)
+            for name in ("mesh.ply", "mesh.stl"):
+                put(name, lambda p: _export_mesh(mesh, p))
     else:
         log.info("nothing could be measured: no pixel has a reliable focus peak; "
                     "no cloud.ply or mesh written")

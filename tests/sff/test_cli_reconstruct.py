@@ -124,3 +124,25 @@ def test_list_without_step_is_an_error(cone_stack, tmp_path, capsys):
     frames = sorted(root.glob("frame_*.png"))
     assert main(["reconstruct", *map(str, frames), "--out", str(tmp_path / "o")]) == 2
     assert "--step-mm" in capsys.readouterr().err
+
+
+def test_outputs_chooses_the_files_written(tmp_path, capsys):
+    from smdinspect.cli import main
+    from smdinspect.synth import GatherNoise, render_gather, slanted_plane, texture
+
+    tex = texture("band", 64, seed=10_020, freq_cyc_px=0.2, contrast=0.25)
+    radiance, height = slanted_plane(size_px=64, low_mm=0.0, high_mm=0.5, texture=tex,
+                                     seed=10_020)
+    z = np.arange(-0.1, 0.6 + 1e-9, 0.05)
+    paths = []
+    for i, f in enumerate(render_gather(radiance, height, z, blur_px_per_mm=4.0,
+                                        noise=GatherNoise(), seed=10_020)):
+        paths.append(tmp_path / f"f{i:02d}.png")
+        cv2.imwrite(str(paths[-1]), f)
+    out = tmp_path / "out"
+    args = ["reconstruct", *map(str, paths), "--step-mm", "0.05", "--out", str(out)]
+    assert main(args + ["--outputs", "height_mm.tiff, cloud.ply"]) == 0
+    assert sorted(p.name for p in out.iterdir()) == ["cloud.ply", "height_mm.tiff", "summary.json"]
+    assert main(args + ["--outputs", "height_mm.tiff,nope.png"]) == 2
+    assert "unknown nope.png" in capsys.readouterr().err
+    assert sorted(p.name for p in out.iterdir()) == ["cloud.ply", "height_mm.tiff", "summary.json"]
