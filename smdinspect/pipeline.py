@@ -164,7 +164,7 @@ def inspect_stack(
     ------
     BoardNotLocatedError
         The board was not found (exit code 3); ``report.json`` with ``"status":
-        "not_located"`` and the reason is written first.
+        "not_located"`` and the reason (and ``report.html`` showing why) is written first.
     InputError
         Bad stack, board file or settings.
     """
@@ -197,13 +197,16 @@ def inspect_stack(
     if surface is None:
         surface = reconstruct(stack, focus_config or inspection_focus_config(), progress=progress)
         _write_reconstruction(surface, out, keep_unreliable)
+    # The 3D view the reconstruction just rendered goes into report.html too.
+    view3d = out / "view3d.png" if isinstance(stack, FocalStack) else None
     try:
         result = inspect_surface(surface, board, inspect_config)
     except BoardNotLocatedError as exc:
         write_not_located(out, board, getattr(exc, "registration", None), reason=str(exc),
-                          source=source, shape=surface.shape, pixel_size_mm=surface.pixel_size_mm)
+                          source=source, shape=surface.shape, pixel_size_mm=surface.pixel_size_mm,
+                          surface=surface, html_report=html, view3d_png=view3d)
         raise
-    write_reports(result, out, source=source, html_report=html)
+    write_reports(result, out, source=source, html_report=html, view3d_png=view3d)
     return result
 
 
