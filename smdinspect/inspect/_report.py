@@ -245,7 +245,7 @@ def _fmt(v: float, nd: int = 3) -> str:
 # --------------------------------------------------------------------------------------
 
 #: Display size of the board overview (longest side, CSS px) and of the side pictures.
-OVERVIEW_PX = 820
+OVERVIEW_PX = 760  # with the side column (height map, 3D view) on a 1366 px screen
 SIDE_PX = 440
 #: Margin around a joint in its crop (mm) and the profile's reach beyond the pad.
 CROP_MARGIN_MM = 0.15
@@ -374,7 +374,7 @@ h3{font-size:1em;margin:0 0 .3em}
 .figs{display:flex;flex-wrap:wrap;gap:18px;align-items:flex-start}.figs figure{margin:0}
 figure svg,figure img{max-width:100%;height:auto}
 figcaption{font-size:.85em;color:#555;max-width:820px}
-.side{display:flex;flex-direction:column;gap:14px;max-width:540px}
+.side{display:flex;flex-direction:column;gap:14px;max-width:520px}
 .withbar{display:flex;align-items:flex-start;gap:4px}
 table{border-collapse:collapse;font-size:.85em}th,td{border:1px solid #ddd;padding:2px 6px;text-align:right}
 th{background:#f3f3f3}table.sortable th{cursor:pointer;user-select:none}td.l,th.l{text-align:left}
@@ -498,7 +498,10 @@ def _joint_card(k: int, j, view: _JointView | None, result: InspectionResult,
     vals = sub_h[view.local & sub_rel & np.isfinite(sub_h)]
     lo, hi = height_range(vals, lo_pct=1.0, hi_pct=99.0, min_span_mm=0.05)
     lo = min(lo, 0.0)
-    hi = max(hi, j.expected_max_mm)
+    # Up to 1.5 x the top of the band (or of the measured max): a body edge inside the
+    # pad saturates instead of taking the colours from the fillet.
+    top = max(j.expected_max_mm, j.measured_max_mm if math.isfinite(j.measured_max_mm) else 0.0)
+    hi = max(min(hi, 1.5 * top), j.expected_max_mm)
     hpic = colourise(height, reliable, lo, hi)  # only the crop is shown
     line = (view.start, view.end)
     poly = np.asarray(j.polygon_px, np.float64)
@@ -557,7 +560,8 @@ def report_html(result: InspectionResult, *, source: str | None = None,
     parts.append(f"<h1>{esc(result.board)}: {status}</h1>")
     parts.append(f"<p>{len(result.joints)} joints: {len(result.defects)} defective, "
                  f"{counts['unreliable']} unreliable (not judged: look at them). "
-                 f"Source: {esc(source or '')}; board file {esc(result.board_source)}; "
+                 + (f"Source: {esc(source)}; " if source else "") +
+                 f"board file {esc(result.board_source)}; "
                  f"smdinspect {esc(__version__)}, {esc(_now())}.</p>")
     items = []
     for title, ks in (("Defects", [k for k in look if result.joints[k].is_defect]),
@@ -671,7 +675,7 @@ def not_located_html(board, registration, *, reason: str, surface=None,
                  "that failed its checks (exit code 3). Check that the board file is the "
                  "board that was measured, that the board lies in the field of view, and "
                  "that the sweep covers the board's heights (the pictures below show what "
-                 f"was measured). Source: {esc(source or '')}; board file "
+                 "was measured). " + (f"Source: {esc(source)}; " if source else "") + "board file "
                  f"{esc(getattr(board, 'source', ''))}; smdinspect {esc(__version__)}, "
                  f"{esc(_now())}.</p>")
     rows = []

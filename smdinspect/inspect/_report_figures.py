@@ -347,7 +347,8 @@ def profile_svg(s_mm: np.ndarray, z_mm: np.ndarray, *, pad_mm: tuple[float, floa
     ``s_mm`` runs from end ``A`` to end ``B`` of the profile line; ``pad_mm`` is the
     pad's extent along it, over which the band [min, max] is shaded, the nominal height
     dashed and the measured max (± its uncertainty) drawn in the verdict colour.
-    Heights beyond the plotted range (a body top far above the band) are clipped;
+    Heights beyond the plotted range (a body top well above the band and the marks)
+    are clipped;
     ``extra_marks`` are further labelled horizontal lines (e.g. a gap height).
     """
     W, H = size
@@ -361,9 +362,11 @@ def profile_svg(s_mm: np.ndarray, z_mm: np.ndarray, *, pad_mm: tuple[float, floa
     if math.isfinite(measured_mm):
         cand.append(measured_mm + (uncertainty_mm if math.isfinite(uncertainty_mm) else 0))
     cand += [v for _, v in extra_marks if math.isfinite(v)]
-    if near.any():
-        cand.append(float(np.max(z[near])))
     hi = max(c for c in cand if math.isfinite(c))
+    # The measured heights over the pad widen the range, up to 1.5 x the band's and
+    # the marks' top: a body top next to a fillet is clipped rather than squash it.
+    if near.any():
+        hi = max(hi, min(float(np.max(z[near])), 1.5 * hi))
     lo = min(0.0, float(np.nanmin(z)) if np.isfinite(z).any() else 0.0,
              measured_mm if math.isfinite(measured_mm) else 0.0)
     span = max(hi - lo, 0.05)

@@ -115,6 +115,39 @@ def test_every_joint_id_is_in_the_dom(board_report, tmp_path):
     assert {f"row-{k}" for k in range(len(result.joints))} <= dom.ids
 
 
+MEASURE_LABELS = """<script>
+var out = [];
+document.querySelectorAll('svg.overview a.jl').forEach(function(a){
+  var t = a.querySelector('text').getBoundingClientRect();
+  var r = a.querySelector('rect').getBoundingClientRect();
+  out.push([a.dataset.joint, t.height, r.left, r.top, r.right, r.bottom].join(' '));
+});
+var pre = document.createElement('pre'); pre.id = 'measured';
+pre.textContent = out.join('\\n'); document.body.appendChild(pre);
+</script>"""
+
+
+def test_labels_are_readable_at_the_default_zoom(board_report, tmp_path):
+    """Chromium lays the labels out at >= 10 CSS px text, without covering each other."""
+    result, page = board_report
+    probe = tmp_path / "probe.html"
+    probe.write_text(page.read_text().replace("</body>", MEASURE_LABELS + "</body>"))
+    dom = chromium(tmp_path, "--window-size=1366,900", "--virtual-time-budget=3000",
+                   "--dump-dom", probe.as_uri())
+    text = dom.split('id="measured">', 1)[1].split("</pre>", 1)[0]
+    rows = [line.split(" ") for line in text.strip().splitlines()]
+    assert sorted(r[0] for r in rows) == sorted(j.id for j in result.joints)
+    boxes = []
+    for _, text_h, *box in rows:
+        assert float(text_h) >= 10, rows
+        boxes.append([float(v) for v in box])
+    for i, a in enumerate(boxes):
+        for b in boxes[i + 1:]:
+            overlap_w = min(a[2], b[2]) - max(a[0], b[0])
+            overlap_h = min(a[3], b[3]) - max(a[1], b[1])
+            assert overlap_w <= 0.5 or overlap_h <= 0.5, (a, b)
+
+
 def test_a_board_not_located_gets_a_report_html_through_the_cli(tmp_path, capsys):
     surface, _, _ = truth_surface(DEMO, "", seed=6)
     recon = tmp_path / "recon"
