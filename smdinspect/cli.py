@@ -37,7 +37,7 @@ EXIT_INTERNAL = 70
 
 # One module per subcommand in smdinspect/_cli/, each with register(subparsers),
 # which adds its parser and sets ``func`` to a callable(args) -> int.
-COMMANDS = ("demo", "simulate", "acquire", "reconstruct", "inspect", "batch", "board", "calibrate", "grr", "spc")
+COMMANDS = ("demo", "simulate", "acquire", "reconstruct", "inspect", "batch", "board", "calibrate", "grr", "spc", "study")
 
 
 def build_parser() -> argparse.ArgumentParser:
