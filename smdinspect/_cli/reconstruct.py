@@ -19,8 +19,9 @@ def add_stack_arguments(p: argparse.ArgumentParser) -> None:
                    help="focus step between listed images (mm); needed for image lists")
     p.add_argument("--pixel-size-mm", type=float, default=None,
                    help="object-side pixel size (mm); overrides stack.json")
-    p.add_argument("--operator", default="sml", choices=OPERATORS, metavar="OP",
-                   help="focus measure (default sml; one of: %(choices)s)")
+    p.add_argument("--operator", default="sml", choices=(*OPERATORS, "auto"), metavar="OP",
+                   help="focus measure (default sml; one of: %(choices)s; auto, in "
+                        "reconstruct: picked from the stack's texture by the texture study)")
     p.add_argument("--window-px", type=int, default=9, help="focus window side, odd (default %(default)s)")
     p.add_argument("--fit", default="power", choices=[m.value for m in FitMethod],
                    help="peak model, fitted above the curve's floor (default power: the "
@@ -38,8 +39,11 @@ def add_stack_arguments(p: argparse.ArgumentParser) -> None:
 
 
 def focus_config_from(args: argparse.Namespace):
+    from ..errors import InputError
     from ..sff import FocusConfig
 
+    if args.operator == "auto":  # reconstruct resolves it first (_cli/study.py)
+        raise InputError("--operator auto is only available in smdinspect reconstruct")
     return FocusConfig(operator=args.operator, window_px=args.window_px, fit=args.fit,
                        fit_half_width=args.fit_half_width, min_confidence=args.min_confidence,
                        align=args.align, workers=args.workers)
@@ -69,6 +73,7 @@ def run(args: argparse.Namespace) -> int:
     from ..sff._export import RECONSTRUCTION_OUTPUTS
     from ..errors import InputError
     from ..stack import open_stack
+    from .study import resolve_auto_operator
 
     outputs = None if args.outputs.strip() == "all" else \
         [name.strip() for name in args.outputs.split(",") if name.strip()]
@@ -76,8 +81,9 @@ def run(args: argparse.Namespace) -> int:
     if unknown:
         raise InputError(f"--outputs: unknown {', '.join(unknown)}; choose from "
                          f"{', '.join(RECONSTRUCTION_OUTPUTS)} (or all)")
-    config = focus_config_from(args)
     stack = open_stack(args.stack, step_mm=args.step_mm, pixel_size_mm=args.pixel_size_mm)
+    auto = resolve_auto_operator(args, stack)  # --operator auto: the texture study's pick
+    config = focus_config_from(args)
     if stack.pixel_size_mm is None:
         log.warning("pixel size unknown (give --pixel-size-mm): x and y are written in pixels")
     with _atomic.replace_dir(args.out, replaces=RECONSTRUCTION_OUTPUTS) as tmp:
@@ -85,7 +91,7 @@ def run(args: argparse.Namespace) -> int:
         surface = apply_calibration_file(surface, args.calibration)
         log.info("writing the height maps, previews, cloud and mesh to %s", args.out)
         write_reconstruction(surface, tmp, keep_unreliable=args.keep_unreliable,
-                             outputs=outputs)
+                             outputs=outputs, extra_summary=auto and {"operator_auto": auto})
     if not surface.reliable.any():
         raise nothing_measured(len(stack), args.out)
     h = surface.height_mm[surface.reliable]
