@@ -46,7 +46,8 @@ import numpy as np
 
 from ._depth import PeakFit
 
-__all__ = ["confidence_map", "depth_edge_mask", "halo_mask", "unsupported_mask"]
+__all__ = ["blur_px_per_frame", "confidence_map", "defocus_halo_mask", "depth_edge_mask",
+           "halo_mask", "unsupported_mask"]
 
 R_LOW_DB, R_HIGH_DB = 14.0, 26.0
 WIDTH_OK, WIDTH_BAD = 2.0, 4.0
@@ -61,7 +62,8 @@ def _ramp(x: np.ndarray, lo: float, hi: float) -> np.ndarray:
     return t * t * (3.0 - 2.0 * t)
 
 
-def confidence_map(fit: PeakFit, *, window_px: int = 9) -> np.ndarray:
+def confidence_map(fit: PeakFit, *, window_px: int = 9,
+                   cues: dict[str, np.ndarray] | None = None) -> np.ndarray:
     """Confidence of every pixel's height.
 
     Parameters
@@ -69,13 +71,15 @@ def confidence_map(fit: PeakFit, *, window_px: int = 9) -> np.ndarray:
     fit : PeakFit
     window_px : int
         The focus window the fit's curves were measured with (scales the noise test).
+    cues : dict, optional
+        :func:`confidence_cues` already computed for ``fit``.
 
     Returns
     -------
     confidence : (H, W) float32 in [0, 1]
     """
     conf = np.ones(fit.interior.shape, np.float32)
-    for cue in confidence_cues(fit, window_px=window_px).values():
+    for cue in (cues or confidence_cues(fit, window_px=window_px)).values():
         conf *= cue
     conf[~fit.interior] = 0.0
     return conf
@@ -199,6 +203,76 @@ def halo_mask(amplitude: np.ndarray, frame_pos: np.ndarray, candidate: np.ndarra
             if m.size:
                 dom[m] = np.maximum(dom[m], running[cell[m]])
     return dom.reshape(h, w) > ratio * amplitude
+
+
+#: In-focus blur (σ, px) assumed for the sharpest edges of a stack: optics matched to
+#: the sensor resolve about one pixel.
+SIGMA0_PX = 1.0
+
+
+def blur_px_per_frame(fit: PeakFit, reliable: np.ndarray, *, power: float) -> float:
+    """Growth κ of the defocus blur σ (px) per frame step, from the sharpest peaks.
+
+    A focus curve F ∝ (1 + Δ²/γ²)^(−p) has γ = σ0/κ frames for a blur
+    σ_b = √(σ0² + κ²Δ²); the strongest 1 % of the reliable peaks (sharp edges, in focus
+    at the resolution limit σ0 = ``SIGMA0_PX``) give γ from their fitted width σ_F =
+    γ·√(e^(1/(2p)) − 1). Returns 0 when fewer than 100 peaks are reliable.
+
+    Measured on rendered slanted planes (σ0 = 1 px): κ = 0.2 and 0.6 px/frame came out
+    0.16–0.26 and 0.51–0.94; at 1.5 px/frame, where the peak is narrower than a frame
+    and its width is not resolved, 3.6–5.9 (too high: the halo reach errs long).
+    """
+    step = None
+    sig = fit.sigma_mm[reliable]
+    amp = fit.f_peak[reliable]
+    if sig.size < 100:
+        return 0.0
+    top = amp >= np.percentile(amp, 99)
+    z = fit.coarse_mm  # frame z of each pixel: the step is the smallest nonzero spacing
+    zs = np.unique(z[reliable])
+    if zs.size > 1:
+        step = float(np.min(np.diff(zs)))
+    if not step:
+        return 0.0
+    width_frames = float(np.median(sig[top])) / step
+    if not np.isfinite(width_frames) or width_frames <= 0:
+        return 0.0
+    gamma = width_frames / np.sqrt(np.expm1(0.5 / power))
+    return SIGMA0_PX / gamma
+
+
+def defocus_halo_mask(amplitude: np.ndarray, frame_pos: np.ndarray, candidate: np.ndarray, *,
+                      base_radius_px: int, blur_px_per_frame: float, ratio: float,
+                      n_frames: int, power: float = 2.0) -> np.ndarray:
+    """:func:`halo_mask` with a reach that grows with the depth gap.
+
+    A sharp edge g frames from a pixel's peak is blurred there by σ_b ≈ κ·g px, and its
+    blurred contrast reaches about 2σ_b: a neighbour at least g frames away explains a
+    weak peak within ``max(base_radius_px, 2κg)`` px, if it is stronger by
+    ``ratio·(g/2)^power`` (the blurred contrast, and so the halo it makes, weakens as
+    the blur grows; ``power`` is the focus curve's p). Tested for gaps 2, 3, 5, 8, 13,
+    … below ``n_frames`` (reach capped at a quarter of the image side).
+
+    Measured: on pcb-oblique (κ ≈ 6 px/frame) the reliable heights standing above the
+    barcode fell from 10 873 to 2 647 px; on a synthetic board (κ ≈ 0.7) 0.06 % of the
+    reliable pixels were dropped, 2 % of them wrong (a constant ratio dropped 3.3 %).
+    """
+    h, w = amplitude.shape
+    cap = max(base_radius_px, min(h, w) // 4)
+    out = np.zeros((h, w), bool)
+    gaps, a, b = [], 2, 3
+    while a < n_frames:
+        gaps.append(a)
+        a, b = b, a + b
+    last_radius = -1
+    for g in gaps:
+        radius = int(min(cap, max(base_radius_px, round(2 * blur_px_per_frame * g))))
+        if radius == last_radius and g != gaps[0]:
+            continue  # same reach, a larger gap: implied by the smaller gap's test
+        out |= halo_mask(amplitude, frame_pos, candidate, radius_px=radius, min_frames=g,
+                         ratio=ratio * (g / 2) ** power)
+        last_radius = radius
+    return out
 
 
 def unsupported_mask(height_mm: np.ndarray, reliable: np.ndarray, *, distance_px: int,

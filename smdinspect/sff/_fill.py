@@ -28,7 +28,8 @@ FGS_SIGMA_COLOR = 12.0
 
 def fill_surface(height_mm: np.ndarray, reliable: np.ndarray, guide: np.ndarray, *,
                  confidence: np.ndarray | None = None, step_mm: float = 1.0,
-                 spread_per_px_mm: float | None = None):
+                 spread_per_px_mm: float | None = None, beyond: np.ndarray | None = None,
+                 z_range_mm: tuple[float, float] | None = None):
     """Fill the unmeasured pixels of a height map, guided by the all-in-focus image.
 
     Parameters
@@ -42,6 +43,12 @@ def fill_surface(height_mm: np.ndarray, reliable: np.ndarray, guide: np.ndarray,
         Weights of the measured pixels (1 when omitted).
     step_mm : float
         Frame step; sets the default distance term of the uncertainty.
+    beyond : (H, W) int8, optional
+        −1 / +1 for pixels sharpest on the first / last frame (``Surface.beyond``):
+        they take that end of ``z_range_mm`` (a bound: the surface is there or beyond)
+        and count as sources of the fill, with uncertainty one step.
+    z_range_mm : (z_first, z_last)
+        Needed with ``beyond``.
 
     Returns
     -------
@@ -60,15 +67,24 @@ def fill_surface(height_mm: np.ndarray, reliable: np.ndarray, guide: np.ndarray,
     h = np.asarray(height_mm, np.float32)
     rel = np.asarray(reliable, bool)
     filled = ~rel
-    if not rel.any():
+    anchor = np.zeros(h.shape, bool)
+    if beyond is not None and z_range_mm is not None:
+        b = np.asarray(beyond)
+        anchor = (b != 0) & ~rel
+        h = np.where(b < 0, np.float32(z_range_mm[0]),
+                     np.where(b > 0, np.float32(z_range_mm[1]), h)).astype(np.float32)
+        h = np.where(rel, np.asarray(height_mm, np.float32), h)
+    src = rel | anchor
+    if not src.any():
         return h.copy(), np.ones(h.shape, bool), np.full(h.shape, np.inf, np.float32)
     if rel.all():
         return h.copy(), filled, np.zeros(h.shape, np.float32)
     g = _guide8(guide)
     w = (np.ones(h.shape, np.float32) if confidence is None
          else np.clip(confidence, 0, 1).astype(np.float32)) * rel
-    base = float(np.median(h[rel]))
-    hz = np.where(rel, h - base, 0).astype(np.float32)  # centred: better float32 sums
+    w[anchor] = 0.5
+    base = float(np.median(h[src]))
+    hz = np.where(src, h - base, 0).astype(np.float32)  # centred: better float32 sums
 
     def smooth(src: np.ndarray) -> np.ndarray:
         return cv2.ximgproc.fastGlobalSmootherFilter(g, src, FGS_LAMBDA, FGS_SIGMA_COLOR)
@@ -78,10 +94,11 @@ def fill_surface(height_mm: np.ndarray, reliable: np.ndarray, guide: np.ndarray,
     tiny = 1e-6
     est = np.where(den > tiny, num / np.maximum(den, tiny), 0).astype(np.float32)
     var = smooth(w * (hz - est) ** 2) / np.maximum(den, tiny)
-    out = np.where(rel, h, est + base).astype(np.float32)
-    dist = cv2.distanceTransform(filled.astype(np.uint8), cv2.DIST_L2, 3)
+    out = np.where(src, h, est + base).astype(np.float32)
+    dist = cv2.distanceTransform((~src).astype(np.uint8), cv2.DIST_L2, 3)
     per_px = 0.1 * abs(step_mm) if spread_per_px_mm is None else spread_per_px_mm
     sigma = np.sqrt(np.maximum(var, 0) + (per_px * dist) ** 2).astype(np.float32)
+    sigma[anchor] = abs(step_mm)
     sigma[rel] = 0.0
     return out, filled, sigma
 

@@ -15,7 +15,8 @@ from ..errors import InputError
 from ..stack import FocalStack
 from ._align import Alignment, estimate_alignment
 from ._config import FitMethod, FocusConfig
-from ._confidence import confidence_map, depth_edge_mask, halo_mask, unsupported_mask
+from ._confidence import (blur_px_per_frame, confidence_cues, confidence_map,
+                          defocus_halo_mask, depth_edge_mask, unsupported_mask)
 from ._depth import PeakTracker, fit_peaks
 from ._focus import FocusOperator, focus_measure, noise_focus
 from ._surface import Surface
@@ -164,7 +165,7 @@ def reconstruct(
                 progress(i + 1, n)
     t_stream = time.perf_counter() - t0
 
-    fit, confidence, halo = _level(tracker, z_mm, config, window_px=config.window_px,
+    fit, confidence, halo, beyond = _level(tracker, z_mm, config, window_px=config.window_px,
                                    halo_radius_px=config.window_px + 2)
     meta: dict = {}
     field = np.ones(tracker.shape, bool)
@@ -224,6 +225,7 @@ def reconstruct(
         pixel_size_mm=stack.pixel_size_mm,
         z_mm=z_mm,
         field=field,
+        beyond=np.where(field & ~reliable, beyond, 0).astype(np.int8),
         meta=meta,
     )
 
@@ -245,21 +247,33 @@ def _prefetch(read: Callable[[int], np.ndarray], n: int, pool: ThreadPoolExecuto
 
 def _level(tracker: PeakTracker, z_mm: np.ndarray, config: FocusConfig, *, window_px: int,
            halo_radius_px: int):
-    """Fit one level's peaks and judge them: (fit, confidence, halo mask)."""
+    """Fit one level's peaks and judge them: (fit, confidence, halo mask, beyond).
+
+    ``beyond`` (int8) is −1 / +1 where the curve is sharpest on the first / last frame
+    and passes the noise and second-mode tests (clearly textured, falling away from the
+    end): the surface is at or beyond that end of the sweep.
+    """
     tracker.finish()
     fit = fit_peaks(tracker, z_mm, method=config.fit, workers=config.workers,
                     power=FocusOperator(config.operator).curve_power)
-    confidence = confidence_map(fit, window_px=window_px)
+    cues = confidence_cues(fit, window_px=window_px)
+    confidence = confidence_map(fit, window_px=window_px, cues=cues)
+    first, last = fit.best_idx == 0, fit.best_idx == len(z_mm) - 1
     halo = np.zeros(tracker.shape, bool)
     if config.halo_ratio > 0:
         frame_pos = np.interp(fit.height_mm, z_mm, np.arange(len(z_mm), dtype=np.float64))
         # a sharp edge whose peak lies on the first or last frame (beyond the sweep)
         # spreads its blur like any other: it may explain its neighbours' peaks
-        on_end = (fit.best_idx == 0) | (fit.best_idx == len(z_mm) - 1)
-        halo = halo_mask(fit.f_best, frame_pos, (confidence >= config.min_confidence) | on_end,
-                         radius_px=halo_radius_px, ratio=config.halo_ratio)
+        power = FocusOperator(config.operator).curve_power
+        kappa = blur_px_per_frame(fit, confidence >= config.min_confidence, power=power)
+        halo = defocus_halo_mask(fit.f_best, frame_pos,
+                                 (confidence >= config.min_confidence) | first | last,
+                                 base_radius_px=halo_radius_px, blur_px_per_frame=kappa,
+                                 ratio=config.halo_ratio, n_frames=len(z_mm), power=power)
         confidence[halo] = 0.0
-    return fit, confidence, halo
+    clear = (cues["noise"] >= 0.5) & (cues["second_mode"] >= 0.5) & ~halo
+    beyond = (np.where(first & clear, -1, 0) + np.where(last & clear, 1, 0)).astype(np.int8)
+    return fit, confidence, halo, beyond
 
 
 class _CoarseLevel:
@@ -288,7 +302,7 @@ class _CoarseLevel:
         """Fill the fine level's unreliable pixels inside ``field`` (except its ``halo``
         pixels) from reliable coarse ones; returns (height, confidence, from_coarse)."""
         # the noise test scales with the footprint; the halo radius is the footprint's
-        fit, conf, _ = _level(self.tracker, z_mm, config, window_px=self.window_px,
+        fit, conf, _, _ = _level(self.tracker, z_mm, config, window_px=self.window_px,
                               halo_radius_px=-(-(self.window_px + 2) // self.factor))
         inside = cv2.resize(field.astype(np.float32), self.small[::-1],
                             interpolation=cv2.INTER_AREA) > 0.999

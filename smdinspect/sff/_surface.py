@@ -59,6 +59,10 @@ class Surface:
     field : (H, W) bool, optional
         Pixels every frame sees (after alignment); all True without alignment.
         Pixels outside it are unreliable.
+    beyond : (H, W) int8, optional
+        −1 / +1 where the focus curve is clearly textured and sharpest on the first /
+        last frame: the surface lies at or beyond that end of the sweep (unreliable as a
+        height, a bound for the dense surface); 0 elsewhere. None when unknown.
     meta : dict
         Settings and timings, written to ``summary.json``.
     """
@@ -73,6 +77,7 @@ class Surface:
     pixel_size_mm: float | None
     z_mm: np.ndarray
     field: np.ndarray | None = None
+    beyond: np.ndarray | None = None
     meta: dict[str, Any] = _field(default_factory=dict)
 
     def __post_init__(self) -> None:
@@ -89,14 +94,16 @@ class Surface:
 
         Measured heights where reliable; elsewhere (inside :attr:`field`) an edge-aware
         fill guided by the all-in-focus image, with ``filled`` True and its own
-        uncertainty ``sigma_mm`` (see :func:`smdinspect.sff._fill.fill_surface`).
+        uncertainty ``sigma_mm`` (see :func:`smdinspect.sff._fill.fill_surface`);
+        :attr:`beyond` pixels are drawn at their end of the sweep.
         Pixels outside the field are filled too and flagged. Never judged by inspection.
         """
         from ._fill import fill_surface
 
         step = float(np.median(np.abs(np.diff(self.z_mm)))) if len(self.z_mm) > 1 else 1.0
         return fill_surface(self.height_mm, self.reliable, self.aif,
-                            confidence=self.confidence, step_mm=step)
+                            confidence=self.confidence, step_mm=step, beyond=self.beyond,
+                            z_range_mm=(float(np.min(self.z_mm)), float(np.max(self.z_mm))))
 
     @property
     def coverage(self) -> float:

@@ -171,6 +171,62 @@ def test_a_second_mode_within_the_window_makes_a_peak_unreliable():
     assert conf[0, 0] >= 0.5 > conf[0, 1]
 
 
+def test_blur_rate_is_estimated_from_the_sharpest_peaks(tmp_path, monkeypatch):
+    import smdinspect.sff._reconstruct as rec
+
+    seen = []
+    original = rec.blur_px_per_frame
+    monkeypatch.setattr(rec, "blur_px_per_frame",
+                        lambda *a, **k: seen.append(original(*a, **k)) or seen[-1])
+    n, step = 160, 0.1
+    tex = texture("band", n, seed=10_030, freq_cyc_px=0.15, contrast=0.3)
+    radiance, height = slanted_plane(size_px=n, low_mm=0.0, high_mm=1.0, texture=tex, seed=10_030)
+    z = np.arange(-0.2, 1.2 + 1e-9, step)
+    for blur in (2.0, 6.0):  # κ = 0.2 and 0.6 px per frame
+        frames = render_gather(radiance, height, z, blur_px_per_mm=blur, sigma0_px=1.0,
+                               noise=GatherNoise(), seed=10_030)
+        reconstruct(_stack(tmp_path, frames, z, name=f"b{blur}"), FocusConfig(coarse_factor=0))
+        assert 0.5 * blur * step < seen[-1] < 2.0 * blur * step, (blur, seen[-1])
+
+
+def test_halo_reach_grows_with_the_depth_gap():
+    from smdinspect.sff._confidence import defocus_halo_mask
+
+    amp = np.full((200, 300), 1.0, np.float32)
+    pos = np.full((200, 300), 4.0)
+    amp[:, 10:12] = 100.0   # a sharp edge beyond the sweep's first frame ...
+    pos[:, 10:12] = 0.0
+    cand = np.zeros((200, 300), bool)
+    cand[:, 10:12] = True
+    kwargs = dict(base_radius_px=11, ratio=4.0, n_frames=7, power=2.0)
+    near = defocus_halo_mask(amp, pos, cand, blur_px_per_frame=0.0, **kwargs)
+    far = defocus_halo_mask(amp, pos, cand, blur_px_per_frame=6.0, **kwargs)
+    # ... explains weak peaks 4 frames away up to ~2·6·3 px from it when its blur is wide
+    assert near[:, 30].sum() == 0 and far[:, 30].all() and far[:, 40].all()
+    assert not far[:, 90].any()  # beyond any reach
+    # a weak peak only 4x below the edge is not explained at a gap of 3+ (ratio 9 needed)
+    amp[:, 30] = 25.0
+    assert not defocus_halo_mask(amp, pos, cand, blur_px_per_frame=6.0, **kwargs)[:, 30].any()
+
+
+def test_peaks_beyond_the_sweep_bound_the_dense_surface(tmp_path):
+    """The top of a plane lies above the last frame: unreliable, flagged ``beyond`` and
+    drawn at the last frame's z in the dense surface, not filled from lower neighbours."""
+    n = 128
+    tex = texture("band", n, seed=10_031, freq_cyc_px=0.2, contrast=0.3)
+    radiance, height = slanted_plane(size_px=n, low_mm=0.0, high_mm=1.0, texture=tex, seed=10_031)
+    z = np.arange(0.0, 0.7 + 1e-9, 0.05)
+    frames = render_gather(radiance, height, z, blur_px_per_mm=4.0, noise=GatherNoise(),
+                           seed=10_031)
+    s = reconstruct(_stack(tmp_path, frames, z), FocusConfig())
+    above = height > z[-1] + 0.1
+    assert not s.reliable[above].any()
+    assert (s.beyond[above] == 1).mean() > 0.8
+    dense, filled, _ = s.dense
+    assert np.median(dense[above]) == pytest.approx(z[-1], abs=1e-6)
+    assert filled[above].all()
+
+
 def test_noise_sigma_and_noise_focus_follow_the_noise():
     from smdinspect.sff._focus import FocusOperator, focus_measure, noise_focus, noise_sigma
 
