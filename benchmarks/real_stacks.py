@@ -237,6 +237,7 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--pictures", type=Path, default=None, help="save aif.png and height.png here")
     p.add_argument("--quick", action="store_true", help="skip the CLI timing")
     p.add_argument("--data", type=Path, default=REPO.parent / "shared" / "data")
+    p.add_argument("--operator", default=None, help="focus operator (default: FocusConfig's)")
     args = p.parse_args(argv)
     names = [s.strip() for s in args.stacks.split(",") if s.strip()]
     unknown = [s for s in names if s not in STACKS]
@@ -247,7 +248,7 @@ def main(argv: list[str] | None = None) -> int:
             print(f"error: data folder not found: {args.data / name}", file=sys.stderr)
             return 2
 
-    config = FocusConfig(align=True)
+    config = FocusConfig(align=True, **({"operator": args.operator} if args.operator else {}))
     print(f"load average {' '.join(f'{x:.2f}' for x in os.getloadavg())} on {os.cpu_count()} CPUs; "
           f"config {config.to_dict()}")
     results = {}
