@@ -147,6 +147,12 @@ def figures(name: str, full, even, field: np.ndarray) -> dict:
     hist = np.histogram(t, bins=10, range=(0.0, 1.0))[0] / max(t.size, 1)
     out["terrace_hist"] = [round(float(s), 4) for s in hist]
     out["terrace_dev"] = float(np.max(np.abs(hist - 0.1)) / 0.1)
+    # where the coverage goes: peaks beyond the sweep (sharpest on an end frame, clearly
+    # textured) cannot be measured by any focus measure of these frames
+    if full.beyond is not None:
+        beyond = (full.beyond != 0) & field
+        out["beyond_share"] = float(beyond.sum() / max(field.sum(), 1))
+        out["coverage_within_sweep"] = float(rel.sum() / max((field & ~beyond).sum(), 1))
     if name == "flat-target-zknown":
         out["flat"] = flat_figures(full, field)
     return out
@@ -214,6 +220,9 @@ def report(name: str, r: dict) -> None:
     for label, value, goal, ok in rows:
         print(f"  {label:<36} {value:<24} goal {goal:<11} {verdict(ok)}")
     print("  terrace histogram (t = 0.0..1.0): " + " ".join(f"{s:.3f}" for s in r["terrace_hist"]))
+    if "beyond_share" in r:
+        print(f"  {100 * r['beyond_share']:.1f} % of the field is sharpest beyond an end of the "
+              f"sweep; coverage of the rest {100 * r['coverage_within_sweep']:.1f} %")
     if r["outliers_unjudged"] > 0:
         print(f"  ({100 * r['outliers_unjudged']:.2f} % of reliable pixels lie in blocks with too few "
               "reliable pixels: not judged)")
