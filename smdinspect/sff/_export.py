@@ -93,6 +93,16 @@ def height_field_mesh(surface: Surface, *, keep_unreliable: bool = False,
     ``keep_unreliable``).
     """
     trimesh = _require("trimesh")
+    verts, faces, rgb = _mesh_arrays(surface, keep_unreliable=keep_unreliable,
+                                     max_side=max_side, dense=dense)
+    return trimesh.Trimesh(vertices=verts, faces=faces,
+                           vertex_colors=np.column_stack([rgb, np.full(len(rgb), 255, np.uint8)]),
+                           process=False)
+
+
+def _mesh_arrays(surface: Surface, *, keep_unreliable: bool, max_side: int, dense: bool):
+    """(vertices (V, 3) float64 mm, faces (F, 3) int64, colours (V, 3) uint8) of
+    :func:`height_field_mesh`, unreferenced vertices removed."""
     h, w = surface.shape
     step = max(1, int(np.ceil(max(h, w) / max_side)))
     rows = np.arange(0, h, step)
@@ -115,11 +125,41 @@ def height_field_mesh(surface: Surface, *, keep_unreliable: bool = False,
     faces = np.concatenate([np.column_stack([a, c, b]), np.column_stack([b, c, d])])
     faces = faces[ok[faces].all(axis=1)]
     colours = np.round(_unit_rgb(surface.aif)[rr, cc].reshape(-1, 3) * 255).astype(np.uint8)
-    mesh = trimesh.Trimesh(vertices=verts, faces=faces,
-                           vertex_colors=np.column_stack([colours, np.full(len(colours), 255, np.uint8)]),
-                           process=False)
-    mesh.remove_unreferenced_vertices()
-    return mesh
+    used = np.zeros(len(verts), bool)
+    used[faces.ravel()] = True
+    remap = np.cumsum(used) - 1
+    return verts[used], remap[faces], colours[used]
+
+
+def write_mesh(surface: Surface, out_dir: str | Path, names: Collection[str] = ("mesh.ply", "mesh.stl"),
+               *, keep_unreliable: bool = False) -> int:
+    """Write the height-field mesh as ``mesh.ply`` (binary, vertex colours; plyfile) and/or
+    ``mesh.stl`` (binary; numpy-stl) without importing trimesh. Returns the face count."""
+    verts, faces, rgb = _mesh_arrays(surface, keep_unreliable=keep_unreliable,
+                                     max_side=MESH_MAX_SIDE, dense=True)
+    out = Path(out_dir)
+    if "mesh.ply" in names:
+        plyfile = _require("plyfile")
+        vertex = np.empty(len(verts), dtype=[("x", "<f4"), ("y", "<f4"), ("z", "<f4"),
+                                             ("red", "u1"), ("green", "u1"), ("blue", "u1")])
+        for i, axis in enumerate("xyz"):
+            vertex[axis] = verts[:, i]
+        for i, channel in enumerate(("red", "green", "blue")):
+            vertex[channel] = rgb[:, i]
+        face = np.empty(len(faces), dtype=[("vertex_indices", "i4", (3,))])
+        face["vertex_indices"] = faces
+        ply = plyfile.PlyData([plyfile.PlyElement.describe(vertex, "vertex"),
+                               plyfile.PlyElement.describe(face, "face")], byte_order="<")
+        with _atomic.atomic_path(out / "mesh.ply") as tmp:
+            ply.write(str(tmp))
+    if "mesh.stl" in names:
+        stl = _require("stl.mesh")
+        m = stl.Mesh(np.zeros(len(faces), dtype=stl.Mesh.dtype))
+        m.vectors[:] = verts[faces].astype(np.float32)
+        m.update_normals()
+        with _atomic.atomic_path(out / "mesh.stl") as tmp:
+            m.save(str(tmp), mode=_require("stl").Mode.BINARY)
+    return int(len(faces))
 
 
 def _figure(width_in: float, height_in: float, dpi: int = 110):
@@ -200,11 +240,6 @@ def render_view3d_png(surface: Surface, path: str | Path, *, max_side: int = 384
     return Path(path)
 
 
-def _export_mesh(mesh, path: Path) -> None:
-    with _atomic.atomic_path(path) as tmp:
-        mesh.export(tmp)
-
-
 def write_reconstruction(
     surface: Surface,
     out_dir: str | Path,
@@ -264,13 +299,13 @@ def write_reconstruction(
     put("height.png", lambda p: render_height_png(surface, p))
     put("view3d.png", lambda p: render_view3d_png(surface, p))
     measured = bool(surface.reliable.any())
-    mesh = None
+    mesh_faces = 0
     if measured:
         put("cloud.ply", lambda p: write_point_cloud(surface, p, keep_unreliable=keep_unreliable))
-        if wanted & {"mesh.ply", "mesh.stl"}:
-            mesh = height_field_mesh(surface, keep_unreliable=keep_unreliable)
-            for name in ("mesh.ply", "mesh.stl"):
-                put(name, lambda p: _export_mesh(mesh, p))
+        names = wanted & {"mesh.ply", "mesh.stl"}
+        if names:
+            mesh_faces = write_mesh(surface, out, names, keep_unreliable=keep_unreliable)
+            paths.update({name: out / name for name in names})
     else:
         log.info("nothing could be measured: no pixel has a reliable focus peak; "
                     "no cloud.ply or mesh written")
@@ -288,7 +323,7 @@ def write_reconstruction(
         },
         "cloud_points": 0 if not measured else int(surface.reliable.sum() if not keep_unreliable
                                                    else surface.reliable.size),
-        "mesh_faces": 0 if mesh is None else int(len(mesh.faces)),
+        "mesh_faces": mesh_faces,
         "keep_unreliable": keep_unreliable,
         **surface.meta,
         **(extra_summary or {}),
