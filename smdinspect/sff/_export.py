@@ -15,7 +15,7 @@ import numpy as np
 
 from .. import _atomic
 from ..errors import InputError
-from ._surface import Surface, _unit_rgb
+from ._surface import Surface, _unit_rgb, pixel_to_xy_mm
 
 __all__ = [
     "RECONSTRUCTION_OUTPUTS",
@@ -108,10 +108,9 @@ def _mesh_arrays(surface: Surface, *, keep_unreliable: bool, max_side: int, dens
     rows = np.arange(0, h, step)
     cols = np.arange(0, w, step)
     rr, cc = np.meshgrid(rows, cols, indexing="ij")
-    x, y = surface.xy_mm()
+    x, y = pixel_to_xy_mm(rr, cc, shape=surface.shape, pixel_size_mm=surface.pixel_size_mm)
     z = surface.dense[0] if dense else surface.height_mm
-    verts = np.column_stack([x[rr, cc].ravel(), y[rr, cc].ravel(),
-                             z[rr, cc].ravel().astype(np.float64)])
+    verts = np.column_stack([np.ravel(x), np.ravel(y), z[rr, cc].ravel().astype(np.float64)])
     if dense:
         keep = surface.field
     else:

@@ -880,13 +880,18 @@ def noise_sigma(frame: np.ndarray) -> float:
 
     The 3x3 mask [[1, −2, 1], [−2, 4, −2], [1, −2, 1]] cancels every linear and quadratic
     intensity pattern; for white noise of σ its response has E|·| = σ·6·√(2/π), so
-    σ ≈ √(π/2)/6 · mean|g ⋆ mask| over the interior. Texture and edges leak in, so on a
-    sharp, textured frame this overestimates σ; on defocused frames it is close.
+    σ ≈ √(π/2)/6 · mean|g ⋆ mask| over the interior (of a central 1024² crop of larger
+    frames). Texture and edges leak in, so on a sharp, textured frame this overestimates
+    σ; on defocused frames it is close.
     """
     g = _as_float32(frame)
     if min(g.shape) < 3:
         return 0.0
-    r = _filter(g, _K_IMMERKAER)[1:-1, 1:-1]
+    h, w = g.shape
+    if h * w > 1 << 20:  # a central 1024² crop is plenty for one number
+        r0, c0 = max(0, (h - 1024) // 2), max(0, (w - 1024) // 2)
+        g = g[r0:r0 + 1024, c0:c0 + 1024]
+    r = _filter(np.ascontiguousarray(g), _K_IMMERKAER)[1:-1, 1:-1]
     return float(np.sqrt(np.pi / 2) / 6.0 * np.mean(np.abs(r), dtype=np.float64))
 
 
