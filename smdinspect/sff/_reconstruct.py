@@ -130,7 +130,10 @@ def reconstruct(
                 focus += np.float32(noise)
             focus = alignment.warp(focus, i)
             image = alignment.warp(image, i)
-        return image, focus
+        small = None
+        if config.coarse_factor > 1 and min(focus.shape) >= 8 * config.coarse_factor:
+            small = _CoarseLevel.reduce(focus, config.coarse_factor)  # in the worker
+        return image, focus, small
 
     tracker: PeakTracker | None = None
     coarse: _CoarseLevel | None = None
@@ -144,7 +147,7 @@ def reconstruct(
             while next_i < n and len(pending) < depth:
                 pending.append(pool.submit(load, next_i))
                 next_i += 1
-            image, focus = pending.popleft().result()
+            image, focus, small = pending.popleft().result()
             if ref_shape is None:
                 ref_shape = image.shape
                 if min(image.shape[:2]) < config.window_px:
@@ -152,14 +155,14 @@ def reconstruct(
                         f"window_px {config.window_px} is larger than the frames "
                         f"({image.shape[1]}x{image.shape[0]} px)")
                 tracker = PeakTracker(image.shape[:2], n, half_width=config.fit_half_width)
-                if config.coarse_factor > 1 and min(image.shape[:2]) >= 8 * config.coarse_factor:
+                if small is not None:
                     coarse = _CoarseLevel(image.shape[:2], n, config)
                 aif = np.zeros_like(image)
             elif image.shape != ref_shape:
                 raise _mismatch(stack.frames[i].path, image.shape, first, ref_shape)
             better = tracker.update(i, focus)
             if coarse is not None:
-                coarse.update(i, focus)
+                coarse.tracker.update(i, small)
             cv2.copyTo(image, better.view(np.uint8), aif)
             if progress is not None:
                 progress(i + 1, n)
@@ -292,10 +295,12 @@ class _CoarseLevel:
         self.window_px = config.window_px + self.BOX * f - 1
         self.tracker = PeakTracker(self.small, n_frames, half_width=config.fit_half_width)
 
-    def update(self, n: int, focus: np.ndarray) -> None:
-        small = cv2.resize(focus, self.small[::-1], interpolation=cv2.INTER_AREA)
-        self.tracker.update(n, cv2.blur(small, (self.BOX, self.BOX),
-                                        borderType=cv2.BORDER_REFLECT))
+    @classmethod
+    def reduce(cls, focus: np.ndarray, factor: int) -> np.ndarray:
+        """One frame's focus on the reduced grid (block mean, then a BOX × BOX box)."""
+        h, w = focus.shape
+        small = cv2.resize(focus, (w // factor, h // factor), interpolation=cv2.INTER_AREA)
+        return cv2.blur(small, (cls.BOX, cls.BOX), borderType=cv2.BORDER_REFLECT)
 
     def merge(self, height: np.ndarray, confidence: np.ndarray, halo: np.ndarray,
               field: np.ndarray, z_mm: np.ndarray, config: FocusConfig):
