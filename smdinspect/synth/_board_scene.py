@@ -10,7 +10,8 @@ What is drawn (heights above the board top surface, z = 0):
   traces and tented vias; a *panel* of mask continues beyond the board outline;
 * white silkscreen (12 µm) component outlines, reference designators, pin-1 marks;
 * mask openings around pads and fiducials (bare laminate 20 µm below the mask top);
-* ENIG pads and fiducials (gold, shiny, flat at z = 0);
+* pads and fiducials in the board's finish: ENIG (gold, shiny, flat at z = 0), HASL
+  (solder-grey, a 5–10 µm uneven pillow) or OSP (bare copper);
 * chips: tin-plated end caps, black resistor overcoat with a printed value code (0603
   and larger) or tan MLCC ceramic;
 * gull-wing parts: black mould with drafted rim, pin-1 dimple and laser marking; tin
@@ -19,7 +20,11 @@ What is drawn (heights above the board top surface, z = 0):
   (or to the lead heel, sides and toe), with a thin solder coat over the wetted pad,
   a granular surface (albedo grain and 2.5 µm micro-relief) and high shininess.
 
-Defects (:data:`DEFECTS`) change the geometry; see :func:`board_scene`.
+Defects (:data:`DEFECTS`) change the geometry; see :func:`board_scene`. Their severity
+(lift, tilt, fillet fraction, bridge size, shift...) is drawn from the seed or given per
+joint (``params``, see :data:`SEVERITY`); :func:`random_board_case` draws whole randomised
+cases (defects over realistic ranges, finish, fiducials, lighting, lens, field edge) for
+the inspection benchmark and tests.
 """
 
 from __future__ import annotations
@@ -36,7 +41,8 @@ from ..errors import InputError
 from ..inspect._board import Board, Component, Joint, _pad_axis, load_board
 from ._scene import Scene
 
-__all__ = ["DEFECTS", "board_scene", "board_shape", "parse_defects"]
+__all__ = ["DEFECTS", "FINISHES", "SEVERITY", "board_scene", "board_shape", "parse_defects",
+           "random_board_case", "scene_kwargs", "TEST_SEEDS", "TUNING_SEEDS"]
 
 log = logging.getLogger(__name__)
 
@@ -57,6 +63,10 @@ _MASK_TRACE = np.array([0.15, 0.43, 0.20], np.float32)
 _LAMINATE = np.array([0.40, 0.34, 0.17], np.float32)
 _SILK = np.array([0.90, 0.90, 0.86], np.float32)
 _ENIG = np.array([0.86, 0.68, 0.36], np.float32)
+_HASL = np.array([0.78, 0.78, 0.76], np.float32)
+_OSP = np.array([0.80, 0.46, 0.30], np.float32)
+#: Pad finishes: colour and shininess of a bare pad (and the fiducials).
+FINISHES = {"enig": (_ENIG, 0.6), "hasl": (_HASL, 0.7), "osp": (_OSP, 0.45)}
 _SOLDER = np.array([0.80, 0.80, 0.78], np.float32)
 _TIN = np.array([0.74, 0.74, 0.72], np.float32)
 _RES_TOP = np.array([0.06, 0.06, 0.06], np.float32)
@@ -158,7 +168,8 @@ def board_shape(board: Board, *, pixel_size_mm: float, offset_mm=(0.0, 0.0),
 def board_scene(board: Board | str | os.PathLike, *, defects: Mapping[str, str] | None = None,
                 pixel_size_mm: float = 0.015, shape: tuple[int, int] | None = None,
                 offset_mm: tuple[float, float] | None = None, rotate_deg: float | None = None,
-                seed: int = 0) -> tuple[Scene, dict[str, Any]]:
+                seed: int = 0, params: Mapping[str, Mapping[str, Any]] | None = None,
+                finish: str = "enig") -> tuple[Scene, dict[str, Any]]:
     """Render a reference board into a scene, with defects, placed in the field of view.
 
     Parameters
@@ -178,7 +189,20 @@ def board_scene(board: Board | str | os.PathLike, *, defects: Mapping[str, str] 
         ``tombstone`` (chips only: the part stands up 60–85° on the other end; the
         requested joint's end is the lifted one), ``component_missing`` (no part, reflowed
         solder bumps on the pads), ``component_shifted`` (the part displaced across its
-        pads by 33–40 % of the pad width, fillets follow the part).
+        pads so the termination overhangs the pad's side by 60–80 % of its width,
+        fillets follow the part).
+    params : dict, optional
+        ``{joint_id: {name: value}}``: the severity of a defect instead of the seeded
+        draw (see :data:`SEVERITY`): ``lift_mm`` (lifted_lead), ``tilt_deg`` (tombstone,
+        5–90°, on the lifted joint), ``fraction`` (insufficient: fillet height as a
+        fraction of the band minimum), ``over_mm`` and ``style`` ("cap": solder over the
+        end cap, the default; "convex": a bulging fillet only) for excess, ``height_mm``
+        and ``width_mm`` (bridge), ``overhang_frac`` (component_shifted: side overhang of
+        the termination over its pad as a fraction of the termination width) and
+        ``rotate_deg`` (component_shifted: the part also turned) and ``direction`` (+1 or
+        -1: which way across its pads).
+    finish : str
+        Pad finish, one of :data:`FINISHES` (``"enig"``, ``"hasl"``, ``"osp"``).
     pixel_size_mm : float
         Object-side pixel size, mm.
     shape : (H, W), optional
@@ -201,7 +225,11 @@ def board_scene(board: Board | str | os.PathLike, *, defects: Mapping[str, str] 
         ``WORLD = R·BOARD + t``) and one entry per joint with ``id``, ``component``,
         ``class`` and ``true_height_mm`` (the highest rendered solder surface inside the
         pad outline, 0 when none), plus ``in_view`` and, where they apply,
-        ``bridge_to`` / ``bridged_by``, ``lifted`` (tombstone end) and ``shift_mm``.
+        ``bridge_to`` / ``bridged_by``, ``lifted`` (tombstone end) and ``shift_mm``;
+        ``severity`` (the drawn parameters of a defect), ``beyond_limit`` (the defect is
+        past the IPC-A-610 Class 2 limit of :data:`SEVERITY`; False for ok joints),
+        ``accept`` (every verdict that names it right) and ``field`` ("in", "partial",
+        "out": how much of the component's body and pads lies inside the image).
 
     Notes
     -----
@@ -223,6 +251,13 @@ def board_scene(board: Board | str | os.PathLike, *, defects: Mapping[str, str] 
         if not isinstance(k, str) or not isinstance(val, str):
             raise InputError(f"defects must map joint ids to class names; got {k!r}: {val!r}")
     _check_defects(defects, board)
+    params = {str(k): dict(v) for k, v in (params or {}).items()}
+    for k in params:
+        if k not in defects:
+            raise InputError(f"params for joint {k!r}, which has no defect; give it one in "
+                             f"defects")
+    if finish not in FINISHES:
+        raise InputError(f"finish must be one of {', '.join(FINISHES)}; got {finish!r}")
 
     rng = np.random.default_rng([int(seed), 0x5EED])
     draw = rng.uniform(-1.0, 1.0, 3)
@@ -255,17 +290,19 @@ def board_scene(board: Board | str | os.PathLike, *, defects: Mapping[str, str] 
                          f"larger pixel_size_mm or give shape")
 
     cv = _Canvas((hh, ww), p, board, off, rot, seed)
-    plan = _plan(board, defects, rng)
+    cv.finish = finish
+    plan = _plan(board, defects, rng, params)
     cv.draw_board(plan)
     for comp in board.components:
         cv.draw_component(comp, plan)
     labels = cv.labels(plan)
-    labels.update({"seed": int(seed)})
+    labels.update({"seed": int(seed), "finish": finish,
+                   "fiducials": len(board.fiducials)})
     scene = Scene(height_mm=cv.z, albedo=np.clip(cv.rgb, 0.0, 1.0),
                   pixel_size_mm=p, specular=np.clip(cv.spec, 0.0, 1.0), name=board.name,
                   meta={"generator": "board_scene", "board": board.name,
                         "board_file": board.source, "placement": labels["placement"],
-                        "defects": dict(defects), "seed": int(seed)})
+                        "defects": dict(defects), "seed": int(seed), "finish": finish})
     return scene, labels
 
 
@@ -274,28 +311,90 @@ def board_scene(board: Board | str | os.PathLike, *, defects: Mapping[str, str] 
 # --------------------------------------------------------------------------------------
 
 
-def _plan(board: Board, defects: dict[str, str], rng: np.random.Generator) -> dict:
+#: Severity of each defect class: the parameter that sets it (``params`` of
+#: :func:`board_scene`), its realistic range (what :func:`random_board_case` draws) and
+#: the IPC-A-610 Class 2 limit past which it is a defect (our reading, in the
+#: parameter's unit; ``direction`` +1: larger is worse, -1: smaller is worse):
+#:
+#: * lifted_lead, lift of the foot (mm): the simulator leaves the solder as a 40–70 µm
+#:   dome, so a foot raised by 50 µm or more has lost contact (no wetting: defect).
+#: * tombstone, tilt of the body (deg): at 10° the raised end of the smallest part
+#:   (0402) stands 0.17 mm off its pad, above any solder dome: an open joint.
+#: * insufficient, fillet height as a fraction of the band minimum: below 1.
+#: * excess, height above the band maximum (mm): above 0.
+#: * bridge, height of the solder web over the mask (mm): any web joining two pads.
+#: * component_shifted, side overhang of the termination (lead) beyond its pad as a
+#:   fraction of the termination (lead) width: IPC-A-610 Class 2 allows 50 %.
+#: * missing, component_missing: always.
+SEVERITY: dict[str, dict[str, Any]] = {
+    "lifted_lead": {"param": "lift_mm", "range": (0.05, 0.40), "limit": 0.05, "direction": 1},
+    "tombstone": {"param": "tilt_deg", "range": (5.0, 90.0), "limit": 10.0, "direction": 1},
+    "insufficient": {"param": "fraction", "range": (0.0, 0.90), "limit": 1.0, "direction": -1},
+    "excess": {"param": "over_mm", "range": (0.02, 0.20), "limit": 0.0, "direction": 1},
+    "bridge": {"param": "height_mm", "range": (0.06, 0.30), "limit": 0.0, "direction": 1},
+    "component_shifted": {"param": "overhang_frac", "range": (0.2, 1.0), "limit": 0.5,
+                          "direction": 1},
+}
+
+
+def _pad_width_across(comp: Component, j: Joint) -> tuple[int, float]:
+    """(lateral axis, pad width across the part's pad axis) of joint ``j``."""
+    loc = comp.to_local([j.center_mm])[0]
+    axis, _ = _pad_axis(loc, comp.body_length_mm, comp.body_width_mm, comp.kind)
+    ext = comp.to_local(j.polygon_mm)
+    lateral = 1 - axis
+    return lateral, float(np.ptp(ext[:, lateral]))
+
+
+def _termination_width(comp: Component, lateral: int) -> float:
+    if comp.kind == "gullwing" and comp.lead:
+        return float(comp.lead["width_mm"])
+    return float(comp.body_width_mm if lateral == 1 else comp.body_length_mm)
+
+
+def _plan(board: Board, defects: dict[str, str], rng: np.random.Generator,
+          params: dict[str, dict[str, Any]] | None = None) -> dict:
+    params = params or {}
     joint_cls = {j.id: "ok" for j in board.joints()}
     comp_state: dict[str, dict[str, Any]] = {}
     extra: dict[str, dict[str, Any]] = {j.id: {} for j in board.joints()}
+    severity: dict[str, dict[str, Any]] = {}
+
+    def given(jid: str, key: str, drawn: Any) -> Any:
+        # Draw first, then override: a seed gives the same scene with or without params.
+        return params.get(jid, {}).get(key, drawn)
+
     for comp in board.components:
-        state = {"defect": None}
+        state: dict[str, Any] = {"defect": None}
         for j in comp.joints:
             cls = defects.get(j.id, "ok")
             if cls in _COMPONENT_LEVEL:
                 state = {"defect": cls, "joint": j.id}
         if state["defect"] == "tombstone":
-            state["theta_deg"] = float(rng.uniform(60.0, 85.0))
+            state["theta_deg"] = float(given(state["joint"], "tilt_deg",
+                                             float(rng.uniform(60.0, 85.0))))
+            if not 0.0 < state["theta_deg"] <= 90.0:
+                raise InputError(f"{state['joint']}: tilt_deg must be in (0, 90]; got "
+                                 f"{state['theta_deg']}")
+            severity[comp.ref] = {"tilt_deg": state["theta_deg"]}
         if state["defect"] == "component_shifted":
-            j0 = comp.joints[0]
-            loc = comp.to_local([j0.center_mm])[0]
-            axis, _ = _pad_axis(loc, comp.body_length_mm, comp.body_width_mm, comp.kind)
-            ext = comp.to_local(j0.polygon_mm)
-            lateral = 1 - axis
-            pad_w = float(np.ptp(ext[:, lateral]))
+            lateral, pad_w = _pad_width_across(comp, comp.joints[0])
+            sign = float(rng.choice([-1.0, 1.0]))
+            draw = float(rng.uniform(0.33, 0.40))
+            sign = float(np.sign(params.get(state["joint"], {}).get("direction", sign)) or sign)
+            w_t = _termination_width(comp, lateral)
+            # Default: the termination overhangs its pad's side by 60–80 % of its width,
+            # past the IPC-A-610 Class 2 limit (50 %).
+            mag = (0.6 + (draw - 0.33) / 0.07 * 0.2) * w_t + (pad_w - w_t) / 2
+            jid = state["joint"]
+            if "overhang_frac" in params.get(jid, {}):
+                mag = float(params[jid]["overhang_frac"]) * w_t + (pad_w - w_t) / 2
             shift = np.zeros(2)
-            shift[lateral] = rng.choice([-1.0, 1.0]) * pad_w * rng.uniform(0.33, 0.40)
+            shift[lateral] = sign * mag
             state["shift_local"] = shift
+            state["rotate_deg"] = float(given(jid, "rotate_deg", 0.0))
+            severity[comp.ref] = {"overhang_frac": max(mag - (pad_w - w_t) / 2, 0.0) / w_t,
+                                  "shift_mm": mag, "rotate_deg": state["rotate_deg"]}
         comp_state[comp.ref] = state
         for j in comp.joints:
             cls = state["defect"] or defects.get(j.id, "ok")
@@ -306,21 +405,36 @@ def _plan(board: Board, defects: dict[str, str], rng: np.random.Generator) -> di
         nominal, lo, hi = j.nominal_height_mm, j.min_height_mm, j.max_height_mm
         if cls == "insufficient":
             f = min(rng.uniform(0.30, 0.40) * nominal, 0.75 * lo)
+            f = float(given(j.id, "fraction", f / lo)) * lo
+            severity[j.id] = {"fraction": f / lo}
         elif cls == "excess":
-            f = hi + rng.uniform(0.08, 0.14)
+            f = hi + float(given(j.id, "over_mm", rng.uniform(0.08, 0.14)))
+            extra[j.id]["style"] = str(given(j.id, "style", "cap"))
+            if extra[j.id]["style"] not in ("cap", "convex"):
+                raise InputError(f"{j.id}: excess style must be 'cap' or 'convex'; got "
+                                 f"{extra[j.id]['style']!r}")
+            severity[j.id] = {"over_mm": f - hi, "style": extra[j.id]["style"]}
         elif cls in ("missing", "lifted_lead", "component_missing"):
             f = 0.0
         else:
             f = float(np.clip(nominal * rng.uniform(0.92, 1.08), lo * 1.25, hi * 0.9))
         fillet[j.id] = float(f)
         if cls in ("lifted_lead",):
-            extra[j.id]["lift_mm"] = float(rng.uniform(0.10, 0.20))
-            extra[j.id]["dome_mm"] = float(rng.uniform(0.04, 0.07))
+            lift = float(given(j.id, "lift_mm", float(rng.uniform(0.10, 0.20))))
+            extra[j.id]["lift_mm"] = lift
+            # The solder left on the pad stays below the raised foot's underside.
+            extra[j.id]["dome_mm"] = min(float(rng.uniform(0.04, 0.07)),
+                                         0.03 + 0.6 * lift)
+            severity[j.id] = {"lift_mm": lift}
         if cls == "component_missing":
             extra[j.id]["dome_mm"] = float(rng.uniform(0.06, 0.10))
         if cls == "tombstone" and comp_state[j.component].get("joint") == j.id:
+            comp = board.component(j.component)
             extra[j.id]["lifted"] = True
-            extra[j.id]["dome_mm"] = float(rng.uniform(0.05, 0.09))
+            dome = float(rng.uniform(0.05, 0.09))
+            raise_mm = comp.body_length_mm * math.sin(math.radians(
+                comp_state[comp.ref]["theta_deg"]))
+            extra[j.id]["dome_mm"] = min(dome, 0.5 * raise_mm + comp.standoff_mm)
     bridges: dict[str, str] = {}
     for jid, cls in defects.items():
         if cls == "bridge":
@@ -329,10 +443,48 @@ def _plan(board: Board, defects: dict[str, str], rng: np.random.Generator) -> di
             bridges[jid] = partner
             extra[jid]["bridge_to"] = partner
             extra[partner].setdefault("bridged_by", jid)
-            extra[jid]["bridge_frac"] = float(rng.uniform(0.0, 1.0))
+            frac = float(rng.uniform(0.0, 1.0))
+            extra[jid]["bridge_frac"] = frac
             extra[jid]["bridge_side"] = float(rng.choice([-1.0, 1.0]))
+            if comp.kind == "chip":
+                hb, wb = 0.12 + 0.08 * frac, 0.26
+            else:
+                lead = comp.lead
+                hb = lead["solder_thickness_mm"] + lead["thickness_mm"] + 0.02 + 0.06 * frac
+                wb = 2 * min(0.3, lead["foot_length_mm"] / 2)
+            extra[jid]["bridge_height_mm"] = float(given(jid, "height_mm", hb))
+            extra[jid]["bridge_width_mm"] = float(given(jid, "width_mm", wb))
+            severity[jid] = {"height_mm": extra[jid]["bridge_height_mm"],
+                             "width_mm": extra[jid]["bridge_width_mm"]}
     return {"joint_cls": joint_cls, "comp": comp_state, "fillet": fillet, "extra": extra,
-            "bridges": bridges, "rng": rng}
+            "bridges": bridges, "rng": rng, "severity": severity}
+
+
+def _beyond_limit(cls: str, severity: Mapping[str, Any]) -> bool:
+    """Whether a defect of ``cls`` with ``severity`` is past its limit (:data:`SEVERITY`)."""
+    if cls == "ok":
+        return False
+    spec = SEVERITY.get(cls)
+    if spec is None or spec["param"] not in severity:
+        return True                     # missing, component_missing: always a defect
+    v = float(severity[spec["param"]])
+    return bool(v > spec["limit"]) if spec["direction"] > 0 else bool(v < spec["limit"])
+
+
+#: Below this fillet height (mm) an insufficient joint is as good as missing: a verdict
+#: of ``missing`` names it right too (the inspector's ``missing_height_mm``).
+_MISSING_LIKE_MM = 0.04
+
+
+def _accept(entry: dict, j: Joint, plan) -> set[str]:
+    """Verdicts that name a joint right: its class, ``bridge`` on a bridge's partner,
+    ``missing`` for an insufficient joint with (almost) no fillet."""
+    out = {entry["class"]}
+    if "bridged_by" in entry:
+        out.add("bridge")
+    if entry["class"] == "insufficient" and plan["fillet"][j.id] < _MISSING_LIKE_MM:
+        out.add("missing")
+    return out
 
 
 def _bridge_partner(comp: Component, joint: Joint) -> str:
@@ -651,10 +803,17 @@ class _Canvas:
         self.spec[opening] = 0.05
         # Trace copper is exposed where it runs through an opening.
         metal = (pads > 0) | (fid > 0) | (opening & (trace > 0) & (drill == 0))
-        enig = self.colour(full, _ENIG, fine=0.05, med=0.03)
+        colour, shine = FINISHES[getattr(self, "finish", "enig")]
+        finish = self.colour(full, colour, fine=0.05, med=0.03)
         self.z[metal] = 0.0005 * self.n_fine[metal]
-        self.rgb[metal] = enig[metal]
-        self.spec[metal] = 0.6
+        if getattr(self, "finish", "enig") == "hasl":
+            # Hot-air levelled solder: an uneven pillow of 5–10 µm over the copper.
+            pill = cv2.GaussianBlur(metal.astype(np.float32), (0, 0),
+                                    max(0.05 / self.p, 0.5))
+            self.z[metal] += (0.005 + 0.005 * np.clip(self.n_coarse[metal], -1, 1)) * \
+                np.clip(2 * pill[metal] - 0.5, 0, 1)
+        self.rgb[metal] = finish[metal]
+        self.spec[metal] = shine
         self.solder[:] = False
 
     # -- components ------------------------------------------------------------------
@@ -675,8 +834,8 @@ class _Canvas:
         if win is None:
             return
         bx, by = self.board_xy(win)
-        # Local coordinates of the (possibly shifted) part.
-        a = math.radians(comp.rotation_deg)
+        # Local coordinates of the (possibly shifted and turned) part.
+        a = math.radians(comp.rotation_deg + state.get("rotate_deg", 0.0))
         ca, sa = math.cos(a), math.sin(a)
         dx, dy = bx - centre[0], by - centre[1]
         u = ca * dx + sa * dy
@@ -688,6 +847,19 @@ class _Canvas:
             _draw_gullwing(ctx)
 
     # -- truth -----------------------------------------------------------------------
+    def field_state(self, comp: Component) -> str:
+        """"in", "partial" or "out": the component's body and pads against the image."""
+        pts = np.vstack([comp.body_polygon_mm()] + [j.polygon_mm for j in comp.joints])
+        px = self.to_px(pts)
+        inside = (px[:, 0] >= 0) & (px[:, 0] <= self.W - 1) & (px[:, 1] >= 0) & \
+            (px[:, 1] <= self.H - 1)
+        return "in" if inside.all() else ("out" if not inside.any() and not
+                                          self._overlaps(px) else "partial")
+
+    def _overlaps(self, px) -> bool:
+        lo, hi = px.min(axis=0), px.max(axis=0)
+        return bool(lo[0] <= self.W - 1 and hi[0] >= 0 and lo[1] <= self.H - 1 and hi[1] >= 0)
+
     def labels(self, plan) -> dict[str, Any]:
         bw, bh = self.board.size_mm
         joints = []
@@ -710,6 +882,12 @@ class _Canvas:
                 entry["shift_mm"] = [round(float(sb[0]), 5), round(float(sb[1]), 5)]
             if "theta_deg" in st:
                 entry["tilt_deg"] = round(st["theta_deg"], 3)
+            sev = plan["severity"].get(j.id) or plan["severity"].get(j.component) or {}
+            entry["severity"] = {k: (round(float(v), 5) if not isinstance(v, str) else v)
+                                 for k, v in sev.items()}
+            entry["beyond_limit"] = _beyond_limit(entry["class"], entry["severity"])
+            entry["accept"] = sorted(_accept(entry, j, plan))
+            entry["field"] = self.field_state(self.board.component(j.component))
             joints.append(entry)
         T = np.eye(3)
         T[:2, :2] = self.R
@@ -734,7 +912,7 @@ class _Ctx:
         self.rng = np.random.default_rng([cv.seed, 0xC0, cv.jindex[comp.joints[0].id]])
 
     def to_local(self, pts_board) -> np.ndarray:
-        a = math.radians(self.comp.rotation_deg)
+        a = math.radians(self.comp.rotation_deg + self.state.get("rotate_deg", 0.0))
         d = np.asarray(pts_board, float).reshape(-1, 2) - self.centre
         return np.column_stack([math.cos(a) * d[:, 0] + math.sin(a) * d[:, 1],
                                 -math.sin(a) * d[:, 0] + math.cos(a) * d[:, 1]])
@@ -855,7 +1033,7 @@ def _draw_chip(ctx: _Ctx) -> None:
         convex = cls == "excess"
         z = _fillet(s, F, convex)
         z = np.where(pad, np.maximum(z, _SOLDER_COAT), 0.0)
-        if convex:
+        if convex and ex.get("style", "cap") == "cap":
             # Solder over the end cap, rising to F at the end face.
             on_cap = (w >= hl - t) & (w <= hl) & (np.abs(q) <= hw)
             frac = np.clip(1 - ((hl - w) / t) ** 2, 0, 1)
@@ -865,9 +1043,10 @@ def _draw_chip(ctx: _Ctx) -> None:
         ctx.put_solder(z, pad | (z > 0))
         if cls == "bridge":
             side = ex["bridge_side"]
-            qc = side * (hw + 0.03)
-            half = 0.13
-            hb = 0.12 + 0.08 * ex["bridge_frac"]
+            half = ex["bridge_width_mm"] / 2
+            # The web wets the body's side: its inner edge lies just under the body.
+            qc = side * (hw + max(0.03, 0.8 * half))
+            hb = ex["bridge_height_mm"]
             uu = u if axis == 0 else v
             vv = v if axis == 0 else u
             taper = np.clip((hl + 0.15 - np.abs(uu)) / 0.15, 0, 1)
@@ -998,8 +1177,8 @@ def _draw_gullwing(ctx: _Ctx) -> None:
             p_axis, p_sign, p_q0 = ctx.joint_axes(partner)
             dq = p_q0 - q0 if (p_axis, p_sign) == (axis, sign) else 0.0
             wc = (w_h + toe) / 2
-            half = min(0.3, lead["foot_length_mm"] / 2)
-            hb = G + T + 0.02 + 0.06 * ex["bridge_frac"]
+            half = ex["bridge_width_mm"] / 2
+            hb = ex["bridge_height_mm"]
             qa, qb = min(0.0, dq), max(0.0, dq)
             along = np.clip(np.minimum(q - qa, qb - q) / 0.05 + 1, 0, 1)
             mid = (qa + qb) / 2
@@ -1059,3 +1238,176 @@ def _draw_gullwing(ctx: _Ctx) -> None:
         zl = _rounded_top(b2 - np.abs(q), zl, 0.04)
         valid = (np.abs(q) <= b2) & (w >= hb_ - 0.01) & (w <= toe)
         cv.put(win, zl.astype(np.float32), tin, 0.5, valid)
+
+
+# --------------------------------------------------------------------------------------
+# Randomised cases (inspection benchmark and tests).
+# --------------------------------------------------------------------------------------
+
+#: Seeds for tuning the verdict rules and for the figures reported (kept apart).
+TUNING_SEEDS = range(0, 1000)
+TEST_SEEDS = range(10000, 11000)
+
+
+def _classes_for(comp: Component) -> tuple[str, ...]:
+    common = ("missing", "insufficient", "excess", "bridge", "component_missing",
+              "component_shifted")
+    return common + (("lifted_lead",) if comp.kind == "gullwing" else ("tombstone",))
+
+
+def _draw_severity(cls: str, comp: Component, rng: np.random.Generator) -> dict[str, Any]:
+    spec = SEVERITY.get(cls)
+    out: dict[str, Any] = {}
+    if spec is not None:
+        lo, hi = spec["range"]
+        out[spec["param"]] = float(rng.uniform(lo, hi))
+    if cls == "excess":
+        out["style"] = str(rng.choice(["cap", "convex"]))
+    if cls == "bridge":
+        if comp.kind == "chip":
+            out["width_mm"] = float(rng.uniform(0.10, 0.40))
+        else:
+            out["width_mm"] = float(rng.uniform(0.15, float(comp.lead["foot_length_mm"])))
+    if cls == "component_shifted":
+        out["rotate_deg"] = float(rng.choice([0.0, 1.0]) * rng.uniform(-8.0, 8.0))
+    return out
+
+
+def _free_direction(board: Board, comp: Component, sev: dict, rng) -> float:
+    """+1 or -1: a direction across its pads in which the part, shifted by ``sev``,
+    lands on no other part's body or pads (0 when neither does)."""
+    from ..inspect._board import polygons_overlap
+
+    lateral, pad_w = _pad_width_across(comp, comp.joints[0])
+    w_t = _termination_width(comp, lateral)
+    mag = float(sev["overhang_frac"]) * w_t + (pad_w - w_t) / 2
+    others = [p for c in board.components if c.ref != comp.ref
+              for p in [c.body_polygon_mm()] + [j.polygon_mm for j in c.joints]]
+    first = float(rng.choice([-1.0, 1.0]))
+    for sign in (first, -first):
+        shift = np.zeros(2)
+        shift[lateral] = sign * mag
+        moved = comp.body_polygon_mm() + _rot(comp.rotation_deg) @ shift
+        # The body grown by 0.1 mm: a part pushed against its neighbour is not a case.
+        c = moved.mean(axis=0)
+        grown = c + (moved - c) * (1 + 0.2 / max(comp.body_width_mm, 0.2))
+        if not any(polygons_overlap(grown, o) for o in others):
+            return sign
+    return 0.0
+
+
+def random_board_case(board: Board | str | os.PathLike, seed: int, *,
+                      defect_probability: float = 0.45,
+                      classes: tuple[str, ...] | None = None,
+                      pixel_size_mm: float = 0.02) -> dict[str, Any]:
+    """Draw one randomised inspection case on ``board`` from ``seed``.
+
+    Every component gets, with ``defect_probability``, one defect class that applies to
+    it (``classes`` limits the choice), at a severity drawn over :data:`SEVERITY`'s
+    realistic range; joint-level classes go to one joint of the part (a bridge's
+    partner stays a good joint). The case also draws the pad finish (ENIG, HASL, OSP),
+    whether the board has fiducials, the lighting (specular gain, shininess,
+    ambient), the lens (one case in four ordinary, reconstructed with alignment), the
+    placement, and in one case in four an image that cuts into the board so parts
+    stand at or across the field edge.
+
+    Returns
+    -------
+    dict
+        ``board`` (the Board, without fiducials when so drawn; inspect against this
+        one), ``defects`` and ``params`` (for :func:`board_scene`), ``finish``,
+        ``fiducials`` (bool), ``lighting`` (keyword arguments of
+        :class:`~smdinspect.synth.Lighting`), ``lens`` ("telecentric" or "ordinary"),
+        ``offset_mm``, ``rotate_deg``, ``shape`` (H, W), ``edge`` (bool), ``seed``,
+        ``pixel_size_mm``. Use :func:`board_scene` with ``**scene_kwargs(case)``.
+    """
+    import dataclasses
+
+    if not isinstance(board, Board):
+        board = load_board(board)
+    p = _positive(pixel_size_mm, "pixel_size_mm")
+    rng = np.random.default_rng([int(seed), 0xCA5E])
+    defects: dict[str, str] = {}
+    params: dict[str, dict[str, Any]] = {}
+    taken: set[str] = set()
+    for comp in board.components:
+        if rng.random() >= defect_probability:
+            continue
+        options = [c for c in _classes_for(comp) if classes is None or c in classes]
+        if not options:
+            continue
+        cls = str(rng.choice(options))
+        free = [j for j in comp.joints if j.id not in taken]
+        if not free:
+            continue
+        j = free[int(rng.integers(0, len(free)))]
+        if cls == "bridge":
+            partner = _bridge_partner(comp, j)
+            if partner in taken or partner in defects:
+                continue
+            taken.add(partner)
+        defects[j.id] = cls
+        taken.add(j.id)
+        if cls in _COMPONENT_LEVEL:
+            taken.update(jj.id for jj in comp.joints)
+        sev = _draw_severity(cls, comp, rng)
+        if cls == "component_shifted":
+            sev["direction"] = _free_direction(board, comp, sev, rng)
+            if sev["direction"] == 0:      # it would land on a neighbour either way
+                del defects[j.id]
+                continue
+        if sev:
+            params[j.id] = sev
+    finish = str(rng.choice(list(FINISHES)))
+    fiducials = bool(rng.random() < 0.5)
+    if not fiducials:
+        board = dataclasses.replace(board, fiducials=())
+    lighting = {"specular_gain": float(rng.uniform(1.0, 3.0)),
+                "shininess": float(rng.uniform(15.0, 60.0)),
+                "ambient": float(rng.uniform(0.1, 0.3))}
+    lens = "ordinary" if rng.random() < 0.25 else "telecentric"
+    rot = float(rng.uniform(-MAX_ROTATE_DEG, MAX_ROTATE_DEG))
+    off = np.array(rng.uniform(-MAX_OFFSET_MM, MAX_OFFSET_MM, 2))
+    shape = board_shape(board, pixel_size_mm=p, offset_mm=tuple(off), rotate_deg=rot)
+    edge = bool(rng.random() < 0.25)
+    if edge:
+        # Cut into the parts' extent on one side by 0.1–0.6 mm.
+        H, W = shape
+        side = int(rng.integers(0, 4))          # 0 right, 1 left, 2 top, 3 bottom
+        depth = float(rng.uniform(0.1, 0.6))
+        axis = 0 if side < 2 else 1
+        off[axis] = float(rng.uniform(-0.5, 0.5))
+        a = math.radians(rot)
+        R = np.array([[math.cos(a), -math.sin(a)], [math.sin(a), math.cos(a)]])
+        bw, bh = board.size_mm
+        pts = np.vstack([np.vstack([c.body_polygon_mm()] + [j.polygon_mm for j in c.joints])
+                         for c in board.components])
+        rel = (pts - [bw / 2, bh / 2]) @ R.T          # world, relative to the board centre
+        size = (W - 1) * p if axis == 0 else (H - 1) * p
+        centre = size / 2 + off[axis]                 # board centre in the old image
+        sgn = 1.0 if side in (0, 2) else -1.0
+        reach = float((sgn * rel[:, axis]).max())
+        keep_mm = min(size, centre + sgn * (reach - depth)) if sgn > 0 else \
+            min(size, size - (centre - (reach - depth)))
+        new_n = max(int(keep_mm / p), 64)
+        new_size = (new_n - 1) * p
+        if sgn > 0:       # keep [0, keep]: the board centre stays at `centre`
+            off[axis] = centre - new_size / 2
+        else:             # keep [size - keep, size]
+            off[axis] = centre - (size - new_size) - new_size / 2
+        if axis == 0:
+            shape = (H, new_n)
+        else:
+            shape = (new_n, W)
+            off[1] = off[1]
+    return {"board": board, "defects": defects, "params": params, "finish": finish,
+            "fiducials": fiducials, "lighting": lighting, "lens": lens,
+            "offset_mm": (float(off[0]), float(off[1])), "rotate_deg": rot,
+            "shape": tuple(int(x) for x in shape), "edge": edge, "seed": int(seed),
+            "pixel_size_mm": p}
+
+
+def scene_kwargs(case: Mapping[str, Any]) -> dict[str, Any]:
+    """Keyword arguments of :func:`board_scene` for a :func:`random_board_case`."""
+    return {k: case[k] for k in ("defects", "params", "finish", "offset_mm", "rotate_deg",
+                                 "shape", "seed", "pixel_size_mm")}

@@ -21,16 +21,25 @@ ALL_DEFECTS = ("U1.2:bridge,U1.6:lifted_lead,U1.4:insufficient,U1.8:excess,C1.1:
 
 def truth_surface(board, defects: str, *, seed: int, pixel_size_mm: float = 0.02,
                   offset_mm=None, rotate_deg=None, noise_mm: float = 0.003,
-                  hole_fraction: float = 0.05, dead_box=None):
+                  hole_fraction: float = 0.05, dead_box=None, params=None,
+                  finish: str = "enig", fiducials: bool = True, shape=None):
     """A Surface from a board scene's true heights, with noise and unreliable holes.
 
     ``dead_box``: (joint_id, half_x_mm, half_y_mm) marks a box around a joint's pad
-    unreliable (a textureless region). Returns (surface, labels, board).
+    unreliable (a textureless region). ``params``, ``finish``, ``shape``: see
+    :func:`board_scene`; ``fiducials=False`` removes the board's fiducials (from the
+    scene and from the board returned, which is the one to inspect against).
+    Returns (surface, labels, board).
     """
+    import dataclasses
+
     b = load_board(board) if isinstance(board, str) else board
+    if not fiducials:
+        b = dataclasses.replace(b, fiducials=())
     scene, labels = board_scene(b, defects=parse_defects(defects, board=b),
                                 pixel_size_mm=pixel_size_mm, seed=seed, offset_mm=offset_mm,
-                                rotate_deg=rotate_deg)
+                                rotate_deg=rotate_deg, params=params, finish=finish,
+                                shape=shape)
     rng = np.random.default_rng(seed)
     h = scene.height_mm + rng.normal(0.0, noise_mm, scene.height_mm.shape).astype(np.float32)
     reliable = rng.random(h.shape) >= hole_fraction
@@ -55,7 +64,7 @@ def expected(labels) -> dict[str, set[str]]:
     """Acceptable verdicts per joint: its class; a bridge's partner may be called bridge."""
     out = {}
     for j in labels["joints"]:
-        ok = {j["class"]}
+        ok = set(j.get("accept", [j["class"]]))
         if "bridged_by" in j:
             ok.add("bridge")
         out[j["id"]] = ok
