@@ -4,7 +4,8 @@
 writes the reconstruction outputs (height map, confidence, all-in-focus image, cloud,
 mesh), locates the board and judges every joint
 (:func:`smdinspect.inspect.inspect_surface`), then writes ``report.json``,
-``joints.csv``, ``junit.xml`` and ``report.html`` into ``out_dir``, each atomically.
+``joints.csv``, ``junit.xml`` and ``report.html`` into ``out_dir``, each atomically,
+and the board's IPC-CFX ``UnitsInspected`` message (``cfx_units_inspected.json``).
 """
 
 from __future__ import annotations
@@ -169,6 +170,7 @@ def inspect_stack(
         Bad stack, board file or settings.
     """
     from .inspect import load_board
+    from .inspect._cfx import write_units_inspected
     from .inspect._inspect import inspect_surface
     from .inspect._report import write_not_located, write_reports
     from .sff import Surface, reconstruct
@@ -205,8 +207,10 @@ def inspect_stack(
         write_not_located(out, board, getattr(exc, "registration", None), reason=str(exc),
                           source=source, shape=surface.shape, pixel_size_mm=surface.pixel_size_mm,
                           surface=surface, html_report=html, view3d_png=view3d)
+        write_units_inspected(out)  # the IPC-CFX message, from the report.json just written
         raise
     write_reports(result, out, source=source, html_report=html, view3d_png=view3d)
+    write_units_inspected(out)
     return result
 
 

@@ -26,6 +26,8 @@ SUMMARY_CSV = "summary.csv"
 SUMMARY_JSON = "summary.json"
 JUNIT_XML = "junit.xml"
 INDEX_HTML = "index.html"
+#: Every board's IPC-CFX message in one list (the name of smdinspect.inspect._cfx.CFX_FILE).
+CFX_JSON = "cfx_units_inspected.json"
 SPC_DIR = "spc"
 LOCK_FILE = ".smdinspect-batch.lock"
 #: Focus settings that change speed, not results: left out of the input fingerprint.
@@ -160,8 +162,9 @@ def run_batch(
     Each stack directory (a folder holding ``stack.json``, found recursively; see
     :func:`discover_stacks`) is one board. Its reports (those of
     :func:`smdinspect.pipeline.inspect_stack`) go to ``out_dir / <stack path relative
-    to stacks_dir>/``; the batch adds ``summary.csv``, ``summary.json`` and one merged
-    ``junit.xml`` in ``out_dir``.
+    to stacks_dir>/``; the batch adds ``summary.csv``, ``summary.json``, one merged
+    ``junit.xml`` and ``cfx_units_inspected.json`` (every board's IPC-CFX message, a
+    JSON list of envelopes) in ``out_dir``.
 
     A board that fails (corrupt stack, board not located, a crash) is recorded as
     ``error`` with its reason and never stops the batch. The run is resumable: a board
@@ -276,7 +279,7 @@ def run_batch(
     for name, path in stacks:
         if _is_within(o_real, path.resolve()):
             raise InputError(f"the report folder {out_dir} lies inside the stack {path}")
-        if name in (SUMMARY_CSV, SUMMARY_JSON, JUNIT_XML, INDEX_HTML) \
+        if name in (SUMMARY_CSV, SUMMARY_JSON, JUNIT_XML, INDEX_HTML, CFX_JSON) \
                 or name.split("/", 1)[0] == SPC_DIR:
             raise InputError(f"stack folder name {name!r} clashes with a batch output file")
 
@@ -368,8 +371,23 @@ def run_batch(
         merge_junit(result.junit, boards)
         write_summary_csv(result.summary_csv, boards)
         write_summary_json(result.summary_json, boards, header)
+        _collect_cfx(result)
         result = _batch_pages(result, spc=spc)
     return result
+
+
+def _collect_cfx(result: BatchResult) -> None:
+    """Every board's IPC-CFX UnitsInspected message (not-located boards' too) in one
+    list, ``out_dir/cfx_units_inspected.json``; a problem here is logged, never fails
+    the batch."""
+    from ..inspect._cfx import CFX_FILE, collect_units_inspected
+
+    try:
+        collect_units_inspected([b.out_dir for b in result.boards
+                                 if (Path(b.out_dir) / CFX_FILE).is_file()],
+                                result.out_dir / CFX_JSON)
+    except OSError as exc:
+        log.warning("cannot write %s: %s", result.out_dir / CFX_JSON, exc)
 
 
 def _batch_pages(result: BatchResult, *, spc: bool) -> BatchResult:

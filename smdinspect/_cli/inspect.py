@@ -22,7 +22,8 @@ def register(sub: argparse._SubParsersAction) -> None:
         "inspect", help="locate the board, measure and judge every solder joint",
         description="Reconstruct a focal stack (or read a reconstruction directory), locate "
                     "the reference board in it, measure every joint and write report.json, "
-                    "joints.csv, junit.xml and report.html. Exit 0: all joints pass; "
+                    "joints.csv, junit.xml, report.html and the IPC-CFX UnitsInspected "
+                    "message cfx_units_inspected.json. Exit 0: all joints pass; "
                     "1: defects; 2: bad input; 3: board not located.")
     add_stack_arguments(p)
     p.add_argument("--board", required=True, type=Path,
@@ -62,6 +63,7 @@ def run(args: argparse.Namespace) -> int:
     from ..errors import BoardNotLocatedError, InputError
     from ..inspect import REPORT_FILES
     from ..inspect._board import check_board_in_field
+    from ..inspect._cfx import CFX_FILE
     from ..pipeline import inspect_stack, is_reconstruction, load_reconstruction
     from ..sff._export import RECONSTRUCTION_OUTPUTS
     from ..stack import open_stack
@@ -85,8 +87,8 @@ def run(args: argparse.Namespace) -> int:
     not_located = None
     # Every output of this run goes to a temporary sibling of --out, swapped in at the end:
     # a run that fails leaves --out as it was, and no old report survives beside new ones.
-    with _atomic.replace_dir(args.out, replaces=RECONSTRUCTION_OUTPUTS + REPORT_FILES,
-                             carry=carry) as tmp:
+    with _atomic.replace_dir(args.out, replaces=RECONSTRUCTION_OUTPUTS + REPORT_FILES
+                             + (CFX_FILE,), carry=carry) as tmp:
         try:
             result = inspect_stack(stack, board, tmp, focus_config=focus_config_from(args),
                                    inspect_config=config, keep_unreliable=args.keep_unreliable,

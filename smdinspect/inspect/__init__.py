@@ -6,12 +6,14 @@ Pipeline (pure functions on arrays and small dataclasses)::
             ──register_board───▶ RegistrationResult (board → world placement)
             ──measure / judge──▶ JointResult, ComponentResult ──▶ InspectionResult
             ──write_reports────▶ report.json, joints.csv, junit.xml, report.html
+            ──write_units_inspected──▶ cfx_units_inspected.json (IPC-CFX)
 
 :func:`inspect_surface` runs all of it; :func:`smdinspect.pipeline.inspect_stack`
 adds the reconstruction and the files.
 """
 
 from ._board import Board, Component, Fiducial, Joint, load_board
+from ._cfx import CFX_FILE, collect_units_inspected, units_inspected, write_units_inspected
 from ._config import FilletModel, InspectConfig, Verdict
 from ._inspect import inspect_surface
 from ._plane import BoardPlane, fit_board_plane
@@ -29,6 +31,7 @@ from ._spc import RULES, capability, individuals_chart, run_rules, xbar_r_chart
 from ._spc_report import SpcAnalysis, analyse_reports, write_spc
 
 __all__ = [
+    "CFX_FILE",
     "REPORT_FILES",
     "RULES",
     "Board",
@@ -47,6 +50,7 @@ __all__ = [
     "analyse_reports",
     "body_top_mm",
     "capability",
+    "collect_units_inspected",
     "fit_board_plane",
     "individuals_chart",
     "inspect_surface",
@@ -59,7 +63,9 @@ __all__ = [
     "render_reference",
     "report_dict",
     "run_rules",
+    "units_inspected",
     "write_reports",
     "write_spc",
+    "write_units_inspected",
     "xbar_r_chart",
 ]

@@ -271,7 +271,8 @@ def test_not_located_replaces_the_earlier_report_whole(cone, out, capsys):
         (out / name).write_text("from an earlier inspection")
     run(capsys, "inspect", cone, "--board", DEMO, "--out", out, code=3, message="not located")
     names = {p.name for p in out.iterdir()}
-    assert names == RECONSTRUCTION | {"report.json", "report.html"}  # no old junit.xml beside
+    # no old junit.xml beside; the IPC-CFX message says "Error" (not located)
+    assert names == RECONSTRUCTION | {"report.json", "report.html", "cfx_units_inspected.json"}
     assert json.loads((out / "report.json").read_text())["status"] == "not_located"
     assert "NOT LOCATED" in (out / "report.html").read_text()  # the new report, saying why
     assert not leftovers(out)
