@@ -171,6 +171,7 @@ def inspect_stack(
     """
     from .inspect import load_board
     from .inspect._cfx import write_units_inspected
+    from .inspect._board import check_board_in_field
     from .inspect._inspect import inspect_surface
     from .inspect._report import write_not_located, write_reports
     from .sff import Surface, reconstruct
@@ -201,6 +202,10 @@ def inspect_stack(
         _write_reconstruction(surface, out, keep_unreliable)
     # The 3D view the reconstruction just rendered goes into report.html too.
     view3d = out / "view3d.png" if isinstance(stack, FocalStack) else None
+    if surface.pixel_size_mm:
+        # a board far larger than the field cannot be located, and registration would
+        # allocate for its whole area (batch and Python callers reach this, not the CLI's check)
+        check_board_in_field(board, surface.shape, surface.pixel_size_mm)
     try:
         result = inspect_surface(surface, board, inspect_config)
     except BoardNotLocatedError as exc:

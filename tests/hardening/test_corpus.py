@@ -442,3 +442,13 @@ def test_sigkill_mid_reconstruct_then_rerun(cone, out, tmp_path):
     assert main(["-q", "reconstruct", str(big), "--out", str(out)]) == 0
     assert {p.name for p in out.iterdir()} == RECONSTRUCTION and not leftovers(out)
     assert json.loads((out / "summary.json").read_text())["image_size_px"] == [512, 512]
+
+
+def test_pipeline_refuses_a_board_far_larger_than_the_field(earlier, tmp_path):
+    """Batch and Python callers go through inspect_stack, not the CLI's early check."""
+    from smdinspect.errors import InputError
+    from smdinspect.pipeline import inspect_stack
+
+    with pytest.raises(InputError, match="more than 4 times the measured field"):
+        inspect_stack(earlier, board_file(tmp_path, size_mm=[400.0, 400.0]), tmp_path / "rep")
+    assert not (tmp_path / "rep" / "report.json").exists()
