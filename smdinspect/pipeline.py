@@ -206,6 +206,7 @@ def inspect_stack(
         # a board far larger than the field cannot be located, and registration would
         # allocate for its whole area (batch and Python callers reach this, not the CLI's check)
         check_board_in_field(board, surface.shape, surface.pixel_size_mm)
+    log.info("locating board %r and measuring its %d joints", board.name, len(board.joints()))
     try:
         result = inspect_surface(surface, board, inspect_config)
     except BoardNotLocatedError as exc:
