@@ -104,8 +104,21 @@ class Alignment:
             "scale_range": [round(min(self.scale(n) for n in range(len(self.transforms))), 4),
                             round(max(self.scale(n) for n in range(len(self.transforms))), 4)],
             "field_fraction": round(float(self.field.mean()), 4),
+            "magnification_trend": self.magnification_trend(),
             "transforms": [a.tolist() for a in self.transforms],
         }
+
+    def magnification_trend(self) -> float:
+        """Relative magnification change from the first frame to the last (frames in
+        ascending z), from a least-squares line through the frames' scales: > 0 when
+        the image grows with z. On a rig that moves the camera the image shrinks as the
+        camera (and z) goes up, so a clear positive trend there means z runs the wrong
+        way; a rig that focuses with the lens magnifies as it focuses nearer (up)."""
+        scales = np.array([self.scale(n) for n in range(len(self.transforms))])
+        if scales.size < 2:
+            return 0.0
+        slope, mid = np.polyfit(np.arange(scales.size), scales, 1)
+        return round(float(slope * (scales.size - 1) / max(np.mean(scales), 1e-9)), 4)
 
 
 def _small(gray: np.ndarray, scale: float) -> np.ndarray:

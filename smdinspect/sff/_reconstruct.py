@@ -28,6 +28,9 @@ log = logging.getLogger(__name__)
 Progress = Callable[[int, int], None]
 #: Every frame is scaled to this mean grey level before its focus measure.
 MEAN_GREY = 128.0
+#: A magnification growing by more than this towards higher z draws a warning (a
+#: moving-camera rig shrinks the image as z goes up; see Alignment.magnification_trend).
+MAGNIFICATION_TREND_WARN = 0.01
 #: Decoded frames the alignment pre-pass may keep for the main pass (bytes).
 FRAME_CACHE_BYTES = 256 * 2**20
 
@@ -100,6 +103,13 @@ def reconstruct(
             raise
         log.info("aligned %d frames onto frame %d (the most magnified); field %.1f %% of it",
                  n, alignment.reference, 100 * alignment.field.mean())
+        trend = alignment.magnification_trend()
+        if trend > MAGNIFICATION_TREND_WARN:
+            log.warning(
+                "the image grows by %.1f %% from the lowest to the highest z: on a rig that "
+                "moves the camera this means z runs the wrong way (check the sign of "
+                "--step-mm or the stack's z_mm: every height would be flipped); on a rig "
+                "that focuses with the lens it is expected", 100 * trend)
     first = stack.frames[0].path
     operator = FocusOperator(config.operator)
 

@@ -242,6 +242,22 @@ def test_noise_sigma_and_noise_focus_follow_the_noise():
     assert FocusOperator("glva").magnification_exponent == 0
 
 
+def test_magnification_trend_warns_when_z_may_run_the_wrong_way(tmp_path, caplog):
+    grows, _, z = _plane(tmp_path, step_mm=0.05, dof_per_step=1.0, mag_per_mm=0.3)
+    with caplog.at_level("WARNING"):
+        s = reconstruct(grows, FocusConfig(align=True))
+    trend = s.meta["alignment"]["magnification_trend"]
+    # 1 + 0.3·(z − z_mid) over the sweep: ~0.3·1.4 / 1 = +42 %
+    assert 0.3 < trend < 0.55, trend
+    assert any("z runs the wrong way" in r.getMessage() for r in caplog.records)
+    caplog.clear()
+    shrinks, _, _ = _plane(tmp_path / "b", step_mm=0.05, dof_per_step=1.0, mag_per_mm=-0.3)
+    with caplog.at_level("WARNING"):
+        s = reconstruct(shrinks, FocusConfig(align=True))
+    assert s.meta["alignment"]["magnification_trend"] < -0.3
+    assert not any("wrong way" in r.getMessage() for r in caplog.records)
+
+
 def test_halo_mask_flags_weak_peaks_next_to_a_strong_one_at_another_depth():
     amp = np.full((64, 64), 1.0, np.float32)
     pos = np.full((64, 64), 5.0)
