@@ -14,9 +14,14 @@ measured WORLD position):
   circle is fitted to the edge points (algebraic fit, then outliers dropped); used when
   its radius matches the board file.
 
-A weighted least-squares rigid transform (2D Procrustes) is fitted to the pairs, with
-iterative rejection of pairs off by more than ``max(3 × median residual, 30 µm)``.
-Fiducials weigh 20 times more than bodies (see :data:`FIDUCIAL_WEIGHT`).
+Bodies are searched up to :data:`BODY_SEARCH_MM` from where the coarse placement puts
+them (the blob of plausible area nearest to the prediction), since the coarse match can
+lock onto one large shifted part (an IC) and leave every other part that far off.
+A consensus (every two pairs propose a rigid transform; the one most pairs agree with
+within :data:`CONSENSUS_MM` wins) removes such a part before a weighted least-squares
+rigid transform (2D Procrustes) is fitted to the agreeing pairs, with iterative rejection
+of pairs off by more than ``max(3 × median residual, 30 µm)``. Fiducials weigh 20 times
+more than bodies (see :data:`FIDUCIAL_WEIGHT`).
 """
 
 from __future__ import annotations
@@ -39,6 +44,10 @@ log = logging.getLogger(__name__)
 #: so they only matter when fewer than two fiducials are seen.
 FIDUCIAL_WEIGHT = 1.0
 BODY_WEIGHT = 0.05
+#: How far from its predicted position a body is searched (mm).
+BODY_SEARCH_MM = 0.6
+#: Pairs within this of a candidate transform agree with it (mm).
+CONSENSUS_MM = 0.06
 
 
 @dataclass(frozen=True)
@@ -62,11 +71,13 @@ def presence_threshold_mm(comp) -> float:
 
 
 def body_blob(comp, height, reliable, T, p, *, search_mm: float,
-              level: float = 0.0) -> np.ndarray | None:
+              level: float = 0.0, exclude: np.ndarray | None = None) -> np.ndarray | None:
     """Mask of the measured body of ``comp`` (holes filled), or None when not found.
 
     ``level``: the local board level, subtracted from ``height`` (only inside the
-    search window)."""
+    search window). ``exclude``: (H, W) pixels never part of the blob (the other
+    parts' footprints, so a neighbour's body or a tombstone leaning over is not
+    merged into this one)."""
     import cv2
     from scipy.ndimage import binary_fill_holes
 
@@ -84,6 +95,9 @@ def body_blob(comp, height, reliable, T, p, *, search_mm: float,
     body_px = world_to_pixel(apply2d(T, comp.body_polygon_mm()), shape=shape, pixel_size_mm=p)
     body = polygon_mask(body_px - [c0, r0], (r1 - r0, c1 - c0))
     cand = window & reliable[sub] & (height[sub] - level > presence_threshold_mm(comp))
+    if exclude is not None:
+        window = window & ~exclude[sub]
+        cand &= window
     if not cand.any():
         return None
     # Close thin unreliable seams (e.g. where an end cap meets the body) before labelling.
@@ -92,25 +106,76 @@ def body_blob(comp, height, reliable, T, p, *, search_mm: float,
     n, lab = cv2.connectedComponents(cand.astype(np.uint8), connectivity=8)
     counts = np.bincount(lab[body & cand], minlength=n)
     counts[0] = 0
-    if counts.max() == 0:
-        return None
-    blob = binary_fill_holes(lab == int(np.argmax(counts)))
+    if counts.max() > 0:
+        pick = int(np.argmax(counts))
+    else:
+        # Shifted off its footprint altogether: the blob of at least half the body's
+        # area nearest to the nominal centre.
+        centre = body_px.mean(axis=0) - [c0, r0]
+        area = np.bincount(lab.ravel(), minlength=n)
+        best = np.inf
+        pick = 0
+        for i in range(1, n):
+            if area[i] * p * p < 0.5 * comp.body_length_mm * comp.body_width_mm:
+                continue
+            rr, cc = np.nonzero(lab == i)
+            d = float(np.hypot(cc.mean() - centre[0], rr.mean() - centre[1]))
+            if d < best:
+                best, pick = d, i
+        if pick == 0:
+            return None
+    blob = binary_fill_holes(lab == pick)
     out = np.zeros(shape, bool)
     out[sub] = blob
     return out
 
 
-def _body_pair(comp, height, reliable, T, p) -> FeaturePair | None:
-    blob = body_blob(comp, height, reliable, T, p, search_mm=0.3)
-    if blob is None:
+def _body_pair(comp, height, reliable, T, p, *,
+               search_mm: float = BODY_SEARCH_MM) -> FeaturePair | None:
+    """The blob of about the body's area (0.8–1.2×) nearest to the predicted centre."""
+    import cv2
+    from scipy.ndimage import binary_fill_holes
+
+    shape = height.shape
+    hl, hw = comp.body_length_mm / 2 + search_mm, comp.body_width_mm / 2 + search_mm
+    win_b = comp.to_board([[-hl, -hw], [hl, -hw], [hl, hw], [-hl, hw]])
+    win_px = world_to_pixel(apply2d(T, win_b), shape=shape, pixel_size_mm=p)
+    c0, r0 = np.floor(win_px.min(axis=0)).astype(int) - 1
+    c1, r1 = np.ceil(win_px.max(axis=0)).astype(int) + 2
+    c0, r0, c1, r1 = max(c0, 0), max(r0, 0), min(c1, shape[1]), min(r1, shape[0])
+    if c1 - c0 < 3 or r1 - r0 < 3:
         return None
-    area = blob.sum() * p * p
+    sub = (slice(r0, r1), slice(c0, c1))
+    window = polygon_mask(win_px - [c0, r0], (r1 - r0, c1 - c0))
+    cand = window & reliable[sub] & (height[sub] > presence_threshold_mm(comp))
+    if not cand.any():
+        return None
+    k = cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (7, 7))
+    cand = cv2.morphologyEx(cand.astype(np.uint8), cv2.MORPH_CLOSE, k).astype(bool) & window
+    n, lab = cv2.connectedComponents(cand.astype(np.uint8), connectivity=8)
     nominal = comp.body_length_mm * comp.body_width_mm
-    if not 0.8 <= area / nominal <= 1.2:
+    pred = world_to_pixel(apply2d(T, np.array([[comp.x_mm, comp.y_mm]])), shape=shape,
+                          pixel_size_mm=p)[0] - [c0, r0]
+    best, best_d = None, np.inf
+    for i in range(1, n):
+        blob = lab == i
+        if blob.sum() * p * p < 0.5 * nominal:
+            continue
+        blob = binary_fill_holes(blob)
+        if not 0.8 <= blob.sum() * p * p / nominal <= 1.2:
+            continue
+        rows, cols = np.nonzero(blob)
+        # A blob cut by the search window's edge is not the whole body.
+        if rows.min() == 0 or cols.min() == 0 or rows.max() == blob.shape[0] - 1 or \
+                cols.max() == blob.shape[1] - 1:
+            continue
+        c = np.array([cols.mean(), rows.mean()])
+        d = float(np.hypot(*(c - pred)))
+        if d < best_d:
+            best, best_d = c, d
+    if best is None:
         return None
-    rows, cols = np.nonzero(blob)
-    x, y = pixel_to_world(np.array([[cols.mean(), rows.mean()]]), shape=height.shape,
-                          pixel_size_mm=p)[0]
+    x, y = pixel_to_world(np.array([best + [c0, r0]]), shape=shape, pixel_size_mm=p)[0]
     return FeaturePair("body", comp.ref, (comp.x_mm, comp.y_mm), (float(x), float(y)),
                        weight=BODY_WEIGHT)
 
@@ -213,6 +278,36 @@ def fit_rigid2d(src: np.ndarray, dst: np.ndarray, w: np.ndarray | None = None) -
     return T
 
 
+def _consensus(src: np.ndarray, dst: np.ndarray, w: np.ndarray, T0: np.ndarray) -> np.ndarray:
+    """Pairs agreeing with the best two-pair rigid hypothesis (or with ``T0``).
+
+    Every two pairs at least 1 mm apart propose a transform; its support is the summed
+    weight of the pairs within :data:`CONSENSUS_MM`, counted per pair kind so that a
+    fiducial counts like a body here (bodies are many, fiducials few and precise).
+    """
+    n = len(src)
+
+    def support(T):
+        r = np.hypot(*(apply2d(T, src) - dst).T)
+        agree = r <= CONSENSUS_MM
+        return int(agree.sum()), -float(np.sum(np.minimum(r, CONSENSUS_MM))), agree
+
+    best = support(T0)
+    for i in range(n):
+        for j in range(i + 1, n):
+            if np.hypot(*(src[i] - src[j])) < 1.0:
+                continue
+            T = fit_rigid2d(src[[i, j]], dst[[i, j]])
+            if abs(math.degrees(math.atan2(T[1, 0], T[0, 0])) -
+                   math.degrees(math.atan2(T0[1, 0], T0[0, 0]))) > 2.0:
+                continue
+            cand = support(T)
+            if cand[:2] > best[:2]:
+                best = cand
+    agree = best[2]
+    return agree if agree.sum() >= 2 else np.ones(n, bool)
+
+
 def refine_with_features(pairs: list[FeaturePair], T0: np.ndarray, *, min_pairs: int = 3,
                          max_residual_mm: float = 0.03):
     """Fit the placement to the feature pairs with outlier rejection.
@@ -230,8 +325,7 @@ def refine_with_features(pairs: list[FeaturePair], T0: np.ndarray, *, min_pairs:
     src = np.array([fp.board_xy for fp in pairs])
     dst = np.array([fp.world_xy for fp in pairs])
     w = np.array([fp.weight for fp in pairs])
-    keep = np.ones(len(pairs), bool)
-    # Start from the coarse placement's residuals to drop gross outliers first.
+    keep = _consensus(src, dst, w, T0)
     res = np.hypot(*(apply2d(T0, src) - dst).T)
     T = T0
     for _ in range(len(pairs)):

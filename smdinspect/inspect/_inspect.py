@@ -16,6 +16,7 @@ from ._measure import (
     fiducial_chroma,
     footprints,
     measure_board,
+    pad_chroma_reference,
     pixel_uncertainty,
 )
 from ._plane import fit_board_plane
@@ -125,10 +126,18 @@ def inspect_surface(surface, board, config: InspectConfig | None = None, *,
     u_px = (pixel_uncertainty(sigma, step, cfg.focus_noise) if sigma is not None
             else np.full(height.shape, np.nan))
     chroma = chroma_map(surface.aif)
+    # The bare finish's colour: the fiducials', else the pads' own (a pad that shows
+    # bare gold or copper), so no fiducial is needed to tell a bare pad from solder.
+    bare_chroma = fiducial_chroma(board, reg.transform, chroma, p)
+    if not np.isfinite(bare_chroma):
+        bare_chroma = pad_chroma_reference(board, reg.transform, chroma, p)
+    field = getattr(surface, "field", None)
+    field = None if field is None or np.asarray(field).shape != height.shape \
+        else np.asarray(field, bool)
     ctx = MeasureContext(height=level, reliable=reliable, u_px=u_px,
                          bare=bare & (np.abs(level) <= 3 * cfg.plane_distance_mm),
                          T=reg.transform, p=p, u_plane_mm=float(u_plane), chroma=chroma,
-                         bare_chroma=fiducial_chroma(board, reg.transform, chroma, p))
+                         bare_chroma=bare_chroma, field=field)
 
     # 4. Measure and judge.
     jm, cm = measure_board(board, ctx, cfg)
@@ -138,7 +147,8 @@ def inspect_surface(surface, board, config: InspectConfig | None = None, *,
         cr = judge_component(comp, cm[comp.ref], cfg)
         comps.append(cr)
         for j in comp.joints:
-            joints.append(judge_joint(j, comp, jm[j.id], cr, cfg))
+            joints.append(judge_joint(j, comp, jm[j.id], cr, cfg,
+                                      component_in_field=cm[comp.ref].in_field_fraction))
     seconds = round(time.perf_counter() - t0, 3)
     result = InspectionResult(
         board=board.name, board_source=str(getattr(board, "source", "")), registration=reg,

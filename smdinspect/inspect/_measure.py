@@ -110,6 +110,8 @@ class JointMeasurement:
     foot_mm: float = NAN            # gull-wing: percentile over the foot
     side_mm: float = NAN            # gull-wing: percentile over the side region
     cap_mm: float = NAN             # chip: end-cap top above its nominal height
+    toe_mm: float = NAN             # gull-wing: solder just beyond the toe (median)
+    in_field_fraction: float = 1.0  # share of the pad inside the measured field
     fillet_reach: float = NAN       # chip meniscus: fraction of F the fitted pixels reach
     observed_mm: float = NAN        # the solder area's percentile (what the pixels show)
     bare_fraction: float = NAN      # visible pad looking like bare finish (colour)
@@ -130,6 +132,9 @@ class ComponentMeasurement:
     tilt_deg: float
     standing_fraction: float
     n_pixels: int
+    in_field_fraction: float = 1.0  # share of the body and pads inside the measured field
+    tilt_pixels: int = 0            # body pixels the tilt was fitted to
+    body_mask: np.ndarray | None = field(default=None, repr=False)   # (H, W) the blob
 
 
 @dataclass
@@ -154,7 +159,10 @@ class MeasureContext:
     chroma : (H, W) float32 or None
         (R − B) / (R + G + B) of the all-in-focus image (None for grey images).
     bare_chroma : float
-        Chroma of the bare pad finish (fiducials); NaN when unknown or neutral.
+        Chroma of the bare pad finish (fiducials, else the pads' own colour, see
+        :func:`pad_chroma_reference`); NaN when unknown or neutral.
+    field : (H, W) bool or None
+        Where the measurement exists (the aligned field of view); None: everywhere.
     """
 
     height: np.ndarray
@@ -166,6 +174,19 @@ class MeasureContext:
     u_plane_mm: float
     chroma: np.ndarray | None = None
     bare_chroma: float = NAN
+    field: np.ndarray | None = None
+
+    def in_field(self, poly_board: np.ndarray) -> float:
+        """Share of a BOARD polygon's area inside the image and the measured field."""
+        px = self.to_px(poly_board)
+        x, y = px[:, 0], px[:, 1]
+        area_px = 0.5 * abs(float(np.dot(x, np.roll(y, -1)) - np.dot(np.roll(x, -1), y)))
+        if area_px < 1.0:
+            return 1.0
+        m = polygon_mask(px, self.shape)
+        if self.field is not None:
+            m &= self.field
+        return float(min(1.0, m.sum() / area_px))
 
     @property
     def shape(self) -> tuple[int, int]:
@@ -222,6 +243,44 @@ def fiducial_chroma(board, T, chroma: np.ndarray | None, p: float) -> float:
         return NAN
     c = float(np.median(np.concatenate(vals)))
     return c if abs(c) >= 0.08 else NAN
+
+
+#: A pixel is "coloured" (not neutral solder or tin grey) when its chroma magnitude is
+#: at least this; ENIG and OSP copper read 0.2–0.35, solder and tin < 0.03.
+COLOURED_CHROMA = 0.08
+
+
+def pad_chroma_reference(board, T, chroma: np.ndarray | None, p: float, *,
+                         min_fraction: float = 0.5) -> float:
+    """Chroma of the bare finish from the pads themselves (no fiducials needed).
+
+    Solder and tin are neutral grey; a bare ENIG (gold) or OSP (copper) pad is
+    coloured. The pads whose visible area (eroded by 2 px from the outline) is mostly
+    coloured (at least ``min_fraction`` of pixels with ``|chroma| >=``
+    :data:`COLOURED_CHROMA`) show the bare finish; the median chroma of their coloured
+    pixels is the reference. NaN when no pad looks bare (nothing to compare: the
+    colour cue stays off) or the image is grey.
+    """
+    if chroma is None:
+        return NAN
+    vals = []
+    shape = chroma.shape
+    for j in board.joints():
+        m = polygon_mask(world_to_pixel(apply2d(T, j.polygon_mm), shape=shape,
+                                        pixel_size_mm=p), shape)
+        m = _morph(m, 2, grow=False)
+        if m.sum() < 20:
+            continue
+        c = chroma[m]
+        col = np.abs(c) >= COLOURED_CHROMA
+        # Bare pads: mostly coloured; the body or lead covers part of any pad, so the
+        # test is on the pad's coloured share of what is not grey-dark.
+        if col.mean() >= min_fraction * 0.6:
+            vals.append(c[col])
+    if not vals:
+        return NAN
+    c = float(np.median(np.concatenate(vals)))
+    return c if abs(c) >= COLOURED_CHROMA else NAN
 
 
 def _morph(mask: np.ndarray, radius_px: float, *, grow: bool) -> np.ndarray:
@@ -339,17 +398,34 @@ def measure_board(board, ctx: MeasureContext, config: InspectConfig):
     """
     joints: dict[str, JointMeasurement] = {}
     comps: dict[str, ComponentMeasurement] = {}
+    # Every part's footprint (body, pads, leads) grown by the gap margin: a gap path of
+    # one part must not run over a neighbouring part's pad or body.
+    fps = footprints(board, ctx, margin_px=config.gap_margin_mm / ctx.p)
     for comp in board.components:
         level, u_level = _local_level(comp, ctx, config)
         win = _Win(comp, ctx, level, grow_mm=max(config.local_plane_radius_mm, 0.5))
-        comps[comp.ref] = _measure_body(comp, ctx, win, level, config)
+        near = _others(fps, comp.ref, win)
+        comps[comp.ref] = cm = _measure_body(comp, ctx, win, level, config, exclude=near)
         for j in comp.joints:
             if comp.kind == "gullwing" and comp.lead:
                 joints[j.id] = _measure_gullwing(comp, j, win, config, level, u_level)
             else:
                 joints[j.id] = _measure_chip(comp, j, win, config, level, u_level)
-        _measure_gaps(comp, win, config, joints)
+        # Where the body really stands (a shifted part covers its own gap band).
+        skip = near[win.sl]
+        if cm.body_mask is not None:
+            skip = skip | _morph(cm.body_mask[win.sl], config.body_margin_mm / ctx.p, grow=True)
+        _measure_gaps(comp, win, config, joints, others=skip)
     return joints, comps
+
+
+def _others(fps: dict[str, np.ndarray], ref: str, win: "_Win") -> np.ndarray:
+    """(H, W) union of the other parts' footprints."""
+    out = np.zeros(win.ctx.shape, bool)
+    for k, fp in fps.items():
+        if k != ref:
+            out |= fp
+    return out
 
 
 def _local_level(comp, ctx: MeasureContext, config: InspectConfig) -> tuple[float, float]:
@@ -454,6 +530,7 @@ def _measure_chip(comp, joint, win: _Win, config: InspectConfig, level: float,
     grown_body = (np.abs(win.lx) <= hl + mg) & (np.abs(win.ly) <= hw + mg)
     area = pad & ~grown_body
     m = _new(joint, win, area, level)
+    m.in_field_fraction = win.ctx.in_field(joint.polygon_mm)
     rel = area & win.rel
     n, n_rel = int(area.sum()), int(rel.sum())
     m.reliable_fraction = n_rel / n if n else 0.0
@@ -508,11 +585,17 @@ def _measure_gullwing(comp, joint, win: _Win, config: InspectConfig, level: floa
     side = pad & ~lead_grown & (u >= heel + mg)
     region = side | foot
     m = _new(joint, win, region, level)
+    m.in_field_fraction = win.ctx.in_field(joint.polygon_mm)
     rel = region & win.rel
     n, n_rel = int(region.sum()), int(rel.sum())
     m.reliable_fraction = n_rel / n if n else 0.0
     m.bare_fraction = _bare_fraction(win, _morph(pad & ~lead_grown & (u >= half_body), 1,
                                                  grow=False))
+    # Just beyond the toe (clear of the toe's blurred edge): a wetted lead's toe fillet
+    # or the solder burying a foot stands here; a lifted lead leaves only the low dome.
+    beyond = pad & win.rel & (u >= toe + mg) & (u <= toe + mg + 0.15) & (np.abs(v) <= b2)
+    if beyond.sum() >= 5:
+        m.toe_mm = float(np.median(win.h[beyond]))
     fr = foot & win.rel
     m.foot_reliable_fraction = float(fr.sum() / max(foot.sum(), 1))
     if fr.sum() >= 5:
@@ -537,7 +620,11 @@ def _measure_gullwing(comp, joint, win: _Win, config: InspectConfig, level: floa
     # focus window, so its percentile reads a fraction of the wetting height.
     side_f = m.side_mm / config.side_fillet_ratio if np.isfinite(m.side_mm) else NAN
     side_u = u_side / config.side_fillet_ratio if np.isfinite(u_side) else NAN
-    if np.isfinite(m.foot_mm) and m.foot_mm > g_t + 0.02:
+    # A foot that stands above its nominal top with no solder up to its underside
+    # beyond the toe is the lead itself raised, not solder on it: never a heel fillet.
+    raised_lead = (np.isfinite(m.lead_mm) and m.lead_mm > g_t + 0.02
+                   and np.isfinite(m.toe_mm) and m.toe_mm < m.lead_mm - float(lead["thickness_mm"]))
+    if np.isfinite(m.foot_mm) and m.foot_mm > g_t + 0.02 and not raised_lead:
         m.max_mm, m.u_max_mm, m.max_method = m.foot_mm, _hypot(u_foot, u_level), "foot"
     elif np.isfinite(side_f):
         m.max_mm, m.u_max_mm, m.max_method = side_f, _hypot(side_u, u_level), "side"
@@ -571,12 +658,17 @@ def _record(joints, a: str, b: str, z: float, f: float) -> None:
             m.gap_mm, m.gap_neighbour, m.gap_fraction = z, other, f
 
 
-def _measure_gaps(comp, win: _Win, config: InspectConfig, joints: dict[str, JointMeasurement]) -> None:
-    """Solder across the gaps between neighbouring pads of one component (see module doc)."""
+def _measure_gaps(comp, win: _Win, config: InspectConfig, joints: dict[str, JointMeasurement],
+                  *, others: np.ndarray | None = None) -> None:
+    """Solder across the gaps between neighbouring pads of one component (see module doc).
+
+    ``others``: window pixels of the other parts' footprints, never sampled."""
     p = win.ctx.p
     gm, mg = config.gap_margin_mm, config.body_margin_mm
     hl, hw = comp.body_length_mm / 2.0, comp.body_width_mm / 2.0
     body_grown = (np.abs(win.lx) <= hl + mg) & (np.abs(win.ly) <= hw + mg)
+    if others is not None:
+        body_grown = body_grown | others
     if comp.kind == "chip" and len(comp.joints) == 2:
         # Along both long sides of the body, between the two pads' inner edges.
         a, b = comp.joints
@@ -655,7 +747,7 @@ def _sample_board(win: _Win, pts: np.ndarray, exclude: np.ndarray, config: Inspe
 
 
 def _measure_body(comp, ctx: MeasureContext, win: _Win, level: float,
-                  config: InspectConfig) -> ComponentMeasurement:
+                  config: InspectConfig, *, exclude: np.ndarray | None = None) -> ComponentMeasurement:
     """Presence, centroid offset, tilt and upright area of the component body.
 
     The raised body is searched in a window around the nominal body (grown by twice
@@ -672,8 +764,13 @@ def _measure_body(comp, ctx: MeasureContext, win: _Win, level: float,
     rel = inner & win.rel_all
     n_rel = int(rel.sum())
     frac = float(n_rel / n) if n else 0.0
+    # Chips: far enough for a part shifted by its own width (other parts' footprints
+    # are excluded, so a neighbour is never taken for it).
     radius = max(config.shift_tol_mm, config.shift_tol_fraction * comp.body_width_mm) * 2 + 0.2
-    blob = body_blob(comp, ctx.height, ctx.reliable, ctx.T, p, search_mm=radius, level=level)
+    if comp.kind == "chip":
+        radius = max(radius, min(comp.body_width_mm, comp.body_length_mm) + 0.2)
+    blob = body_blob(comp, ctx.height, ctx.reliable, ctx.T, p, search_mm=radius, level=level,
+                     exclude=exclude)
     if blob is None:
         blob = np.zeros(ctx.shape, bool)
     br = blob & ctx.reliable
@@ -681,29 +778,57 @@ def _measure_body(comp, ctx: MeasureContext, win: _Win, level: float,
     body_h = float(np.median(ctx.height[br] - level)) if br.any() else NAN
     offset = (NAN, NAN)
     if blob.sum() >= 10:
+        # The body's centre from its edges (2nd and 98th percentiles of the blob along
+        # the part's own axes), not the blob's centroid: unreliable patches inside the
+        # body or solder merged at one end do not move the edges.
         rows, cols = np.nonzero(blob)
-        cen = ctx.px_to_board([cols.mean()], [rows.mean()])[0]
+        loc = comp.to_local(ctx.px_to_board(cols, rows))
+        lo, hi = np.percentile(loc, 2, axis=0), np.percentile(loc, 98, axis=0)
+        cen = comp.to_board([(lo + hi) / 2.0])[0]
         offset = (float(cen[0] - comp.x_mm), float(cen[1] - comp.y_mm))
     tilt = NAN
     standing = 0.0
+    n_tilt = 0
     if comp.kind == "chip":
-        tilt = _body_tilt(win, rel)
+        # The body between the terminations: solder over an end cap (excess) never
+        # reaches it, so its top plane is the body's own (a tilted part tilts it).
+        t = comp.termination_length_mm
+        middle = (np.abs(win.lx) <= max(hl - t - 0.02, 0.25 * hl)) & \
+            (np.abs(win.ly) <= hw - mg) & win.rel_all
+        wb = blob[win.sl]
+        if wb.sum() >= 20:
+            # The middle of the body where it really stands (a shifted or turned part),
+            # from the blob's own extent along the part's axis.
+            # Along the part: the nominal middle (solder over a cap lengthens the blob);
+            # across it: where the blob stands (a shifted part), both trimmed a little
+            # more for a turned part.
+            y0, y1 = np.percentile(win.ly[wb], [2, 98])
+            yc = (y0 + y1) / 2
+            middle = wb & (np.abs(win.lx) <= max(hl - t - 0.05, 0.25 * hl)) & \
+                (np.abs(win.ly - yc) <= max((y1 - y0) / 2 - mg, 0.25 * (y1 - y0) / 2)) & \
+                win.rel_all
+        tilt, n_tilt = _body_tilt(win, middle, floor_mm=0.5 * body_top_mm(comp))
         # An upright part stands far above the nominal top over much of its footprint.
         top = body_top_mm(comp)
         near = (np.abs(win.lx) <= hl + 0.1) & (np.abs(win.ly) <= hw + 0.1) & win.rel_all
         tall = near & (win.h > top + max(0.2, 0.3 * comp.body_height_mm))
         standing = float(tall.sum() * p * p / (comp.body_length_mm * comp.body_width_mm))
-    return ComponentMeasurement(comp.ref, frac, present, body_h, offset, tilt, standing, n)
+    in_field = min([ctx.in_field(comp.body_polygon_mm())]
+                   + [ctx.in_field(j.polygon_mm) for j in comp.joints])
+    return ComponentMeasurement(comp.ref, frac, present, body_h, offset, tilt, standing, n,
+                                in_field_fraction=in_field, tilt_pixels=n_tilt,
+                                body_mask=blob if blob.any() else None)
 
 
-def _body_tilt(win: _Win, rel: np.ndarray) -> float:
-    """Tilt (deg) along the component's axis of a plane fitted to the raised body pixels.
+def _body_tilt(win: _Win, rel: np.ndarray, *, floor_mm: float = 0.1) -> tuple[float, int]:
+    """Tilt (deg) along the component's axis of a plane fitted to the raised body pixels,
+    and the number of pixels it was fitted to.
 
-    Pixels of the footprint lower than 0.1 mm are left out (a tombstoned chip's lower
-    end exposes the pad); the fit is a robust least-squares plane (two passes)."""
-    sel = rel & (win.h > 0.1)
+    Pixels lower than ``floor_mm`` are left out (a tombstoned chip's lower end exposes
+    the pad); the fit is a robust least-squares plane (two passes)."""
+    sel = rel & (win.h > floor_mm)
     if sel.sum() < 10:
-        return NAN
+        return NAN, int(sel.sum())
     x, y, z = win.lx[sel], win.ly[sel], win.h[sel]
     A = np.column_stack([x, y, np.ones(len(z))])
     keep = np.ones(len(z), bool)
@@ -715,4 +840,4 @@ def _body_tilt(win: _Win, rel: np.ndarray) -> float:
         keep = np.abs(res) <= 3 * s
         if keep.sum() < 10:
             break
-    return float(math.degrees(math.atan(abs(coef[0]))))
+    return float(math.degrees(math.atan(abs(coef[0])))), int(sel.sum())

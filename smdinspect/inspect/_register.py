@@ -408,11 +408,38 @@ def register_board(
         pairs = feature_pairs(height, reliable, aif, board, T, p)
         T_feat, feat_info = refine_with_features(pairs, T)
         meta["features"] = feat_info
+        if T_feat is not None and _moved_mm(T, T_feat, board) > 0.05:
+            # A large correction (the coarse match locked onto one shifted part): find
+            # the features again where they now should be, fiducials included.
+            pairs2 = feature_pairs(height, reliable, aif, board, T_feat, p)
+            T_feat2, info2 = refine_with_features(pairs2, T_feat)
+            if T_feat2 is not None:
+                T_feat, feat_info = T_feat2, info2
+                meta["features"] = feat_info
         if T_feat is not None:
             moved = _moved_mm(T, T_feat, board)
             feat_info["moved_mm"] = round(moved, 5)
             if moved <= 0.25:
                 T, method = T_feat, "coarse+features"
+            elif moved <= 1.0:
+                # Keep a large correction only when the measurement agrees better.
+                ref_pts0, _ = reference_points(board, spacing_mm=max(p, 0.04), seed=cfg.seed)
+                meas0 = _measured_points(height, reliable, p, board, T, max_points=20000,
+                                         seed=cfg.seed)
+                f_c, _ = _evaluate(meas0, ref_pts0, T, cfg.icp_distance_mm)
+                f_f, _ = _evaluate(meas0, ref_pts0, T_feat, cfg.icp_distance_mm)
+                feat_info["fitness_coarse_vs_features"] = [round(f_c, 4), round(f_f, 4)]
+                used = feat_info.get("used", [])
+                n_fid = sum(u.startswith("fiducial:") for u in used)
+                n_rej = len(feat_info.get("rejected", []))
+                # Fiducials that agree are the board's own reference marks; without
+                # them, most bodies must agree (one large shifted part pulls the
+                # height-map fitness its way).
+                if f_f > f_c or n_fid >= 2 or (len(used) >= 3 and len(used) >= 2 * n_rej):
+                    T, method = T_feat, "coarse+features"
+                else:
+                    feat_info["rejected_fit"] = (f"moved the board by {moved:.3f} mm without "
+                                                 f"a better fitness")
             else:
                 feat_info["rejected_fit"] = f"moved the board by {moved:.3f} mm"
     ref_pts, ref_n = reference_points(board, spacing_mm=max(p, 0.04), seed=cfg.seed)
@@ -436,12 +463,22 @@ def register_board(
     coverage = _coverage(height, reliable, p, ref_pts, ref_n, T_final, cfg.icp_distance_mm)
     meta["forward_fitness"] = fit
     meta["reference_coverage"] = coverage
-    if math.isfinite(coverage):
+    # Most parts found where the placement puts them, to a few µm, and the measured
+    # raised points lie on the reference: the board is located even when a large part
+    # is missing (it takes most of the reference's raised area, so the correlation and
+    # the reference coverage drop; the joints then say what is missing).
+    feat = meta.get("features") or {}
+    used_bodies = [u for u in feat.get("used", []) if u.startswith("body:")]
+    by_features = (method.startswith("coarse+features") and len(feat.get("used", [])) >= 3
+                   and len(used_bodies) >= 0.5 * len(board.components)
+                   and float(feat.get("rms_mm", 1.0)) <= 0.02 and fit >= cfg.min_fitness)
+    meta["located_by_features"] = bool(by_features)
+    if math.isfinite(coverage) and not by_features:
         fit = min(fit, coverage)
     meta["seconds"] = round(time.perf_counter() - t_start, 3)
 
     reasons = []
-    if math.isfinite(score) and score < cfg.min_match_score:
+    if math.isfinite(score) and score < cfg.min_match_score and not by_features:
         reasons.append(f"height maps correlate poorly with the reference (score {score:.2f} < "
                        f"{cfg.min_match_score})")
     if len(meas) < 100:

@@ -69,11 +69,16 @@ def test_a_textureless_region_makes_its_joints_unreliable():
     assert "not judged" in j.reason
     assert result.joint("R1.1").verdict is Verdict.MISSING
     others = [k for k in result.joints if k.id not in ("R2.2", "R1.1")]
-    assert all(k.verdict is Verdict.OK for k in others)
+    # Every other joint passes, except that an extrapolated fillet top (the 0402's,
+    # reach < 0.4 even on an ideal map) is unreliable, never a pass on its own.
+    assert all(k.verdict is Verdict.OK or (k.verdict is Verdict.UNRELIABLE and
+                                           "fillet top not measured" in k.reason)
+               for k in others)
     # Unreliable joints are reported but do not fail the board by themselves.
     clean, _, _ = truth_surface(board, "", seed=5, dead_box=("R2.2", 0.9, 0.7))
     r2 = inspect_surface(clean, board, IDEAL)
-    assert [j.id for j in r2.unreliable] == ["R2.2"] and r2.exit_code == 0
+    assert "R2.2" in [j.id for j in r2.unreliable] and r2.exit_code == 0
+    assert all(j.id == "R2.2" or "fillet top not measured" in j.reason for j in r2.unreliable)
 
 
 def test_the_wrong_board_file_raises_not_located():

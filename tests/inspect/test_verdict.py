@@ -43,16 +43,28 @@ def test_meniscus_reaching_its_top_is_judged(c2):
     low = joint.min_height_mm - 0.03
     r = _judge(c2, max_mm=low, max_method="meniscus", fillet_reach=0.55, observed_mm=low - 0.05)
     assert r.verdict is Verdict.INSUFFICIENT
+    # An extrapolated max passes a joint only flagged, with its reach, in the reason and
+    # in max_method (shown in every report)...
     r = _judge(c2, max_mm=joint.nominal_height_mm, max_method="meniscus", fillet_reach=0.2,
-               observed_mm=0.1)
-    assert r.verdict is Verdict.OK          # an extrapolation may pass a joint...
+               observed_mm=joint.min_height_mm - 0.05)
+    assert r.verdict is Verdict.OK and "EXTRAPOLATED" in r.reason and "20%" in r.reason
+    assert r.max_method == "meniscus (extrapolated, reach 20%)"
+    # ...and never from a far extrapolation (issue 12: the README's C2.2, a 0402 at 16 %
+    # reach, passed at 161 µm against a true 350 µm)...
+    r = _judge(c2, max_mm=joint.nominal_height_mm, max_method="meniscus", fillet_reach=0.15,
+               observed_mm=joint.min_height_mm - 0.05)
+    assert r.verdict is Verdict.UNRELIABLE and "15%" in r.reason
+    # ...unless the solder seen (a lower bound of the fillet) already reaches the band.
+    r = _judge(c2, max_mm=joint.nominal_height_mm, max_method="meniscus", fillet_reach=0.15,
+               observed_mm=joint.min_height_mm + 0.01)
+    assert r.verdict is Verdict.OK and "extrapolated" in r.reason and "15%" in r.reason
 
 
 def test_meniscus_extrapolated_below_or_above_the_band_is_unreliable(c2):
     joint = c2[0]
     low = joint.min_height_mm - 0.03
     r = _judge(c2, max_mm=low, max_method="meniscus", fillet_reach=0.3, observed_mm=low - 0.05)
-    assert r.verdict is Verdict.UNRELIABLE  # ...but never fail it
+    assert r.verdict is Verdict.UNRELIABLE  # ...nor fails it
     assert "fillet top not measured" in r.reason and "30%" in r.reason
     high = joint.max_height_mm + 0.1
     r = _judge(c2, max_mm=high, max_method="meniscus", fillet_reach=0.3,
