@@ -132,25 +132,20 @@ def _mesh_arrays(surface: Surface, *, keep_unreliable: bool, max_side: int, dens
 
 def write_mesh(surface: Surface, out_dir: str | Path, names: Collection[str] = ("mesh.ply", "mesh.stl"),
                *, keep_unreliable: bool = False) -> int:
-    """Write the height-field mesh as ``mesh.ply`` (binary, vertex colours; plyfile) and/or
-    ``mesh.stl`` (binary; numpy-stl) without importing trimesh. Returns the face count."""
+    """Write the height-field mesh as ``mesh.ply`` (binary, vertex colours; trimesh) and/or
+    ``mesh.stl`` (binary; numpy-stl). Returns the face count.
+
+    trimesh (0.5 s to import) is loaded only for ``mesh.ply``: plyfile writes list
+    properties one face at a time (0.77 s for 290 000 faces), numpy-stl has no PLY."""
     verts, faces, rgb = _mesh_arrays(surface, keep_unreliable=keep_unreliable,
                                      max_side=MESH_MAX_SIDE, dense=True)
     out = Path(out_dir)
     if "mesh.ply" in names:
-        plyfile = _require("plyfile")
-        vertex = np.empty(len(verts), dtype=[("x", "<f4"), ("y", "<f4"), ("z", "<f4"),
-                                             ("red", "u1"), ("green", "u1"), ("blue", "u1")])
-        for i, axis in enumerate("xyz"):
-            vertex[axis] = verts[:, i]
-        for i, channel in enumerate(("red", "green", "blue")):
-            vertex[channel] = rgb[:, i]
-        face = np.empty(len(faces), dtype=[("vertex_indices", "i4", (3,))])
-        face["vertex_indices"] = faces
-        ply = plyfile.PlyData([plyfile.PlyElement.describe(vertex, "vertex"),
-                               plyfile.PlyElement.describe(face, "face")], byte_order="<")
+        trimesh = _require("trimesh")
+        mesh = trimesh.Trimesh(vertices=verts, faces=faces, process=False,
+                               vertex_colors=np.column_stack([rgb, np.full(len(rgb), 255, np.uint8)]))
         with _atomic.atomic_path(out / "mesh.ply") as tmp:
-            ply.write(str(tmp))
+            mesh.export(tmp, file_type="ply")
     if "mesh.stl" in names:
         stl = _require("stl.mesh")
         m = stl.Mesh(np.zeros(len(faces), dtype=stl.Mesh.dtype))
