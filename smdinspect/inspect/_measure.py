@@ -36,10 +36,12 @@ Gull-wing heel joint
     0.5 on the synthetic boards at 20 µm/px, 5-px window: default 0.5); on an ideal
     height map the percentile of a concave strip reads ~0.8 of it.
 Colour
-    When the all-in-focus image is in colour and the board has fiducials (bare pad
-    finish), ``bare_fraction`` is the fraction of the visible pad (not under the body or
-    lead) whose chromaticity is closer to the fiducials' than to neutral solder grey: 1
-    for an unsoldered ENIG pad, 0 for a wetted one. NaN when the finish is itself grey.
+    When the all-in-focus image is in colour, ``bare_fraction`` is the fraction of the
+    visible pad (not under the body or lead) whose chromaticity is closer to the bare
+    finish's than to neutral solder grey: 1 for an unsoldered ENIG or OSP pad, 0 for a
+    wetted one. The finish's chroma comes from the fiducials or, without them, from the
+    pads that are mostly coloured themselves (:func:`pad_chroma_reference`). NaN when
+    the finish is itself grey (HASL) or no pad looks bare.
 Plausibility
     Pad and gap pixels higher than plausible solder (chips: body top + 0.25 mm;
     gull-wing: lead top at the mould exit + 0.1 mm) are treated as unreliable (spurious focus peaks, e.g. at the end of the stack on dark or specular
@@ -67,8 +69,15 @@ Uncertainty
 Component (body)
     Reliable fraction of the body footprint; the raised blob (above the presence
     threshold) found near the nominal body, its size relative to the body (presence)
-    and centroid offset (BOARD frame); for chips the tilt of a plane fitted to the body
-    top and the area standing far above the nominal top (an upright, tombstoned part).
+    and offset of its centre (the midpoint of its edges along the part's axes, BOARD
+    frame); for chips the tilt of a plane fitted to the body top between the
+    terminations, where the blob stands, and the area standing far above the nominal
+    top (an upright, tombstoned part); the share of the body and pads inside the
+    measured field. Other parts' footprints are never taken into a body.
+Gull-wing lead
+    ``toe_mm``: the median height just beyond the toe (``body_margin_mm`` to +0.15 mm);
+    a raised lead with nothing up to its underside there is the lead itself lifted, and
+    its foot is then never taken for solder (``max_method`` "side").
 """
 
 from __future__ import annotations

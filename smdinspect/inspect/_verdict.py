@@ -49,9 +49,9 @@ Joint level
     Rules 11–13 need a measured max: when a chip's meniscus fit reaches less than
     ``min_fillet_reach`` of its height, the fillet's top was not measured and the max is
     an extrapolation. Such a joint is ``excess`` when the solder area's own percentile
-    is already above the band (seen directly), ``missing`` when nothing stands on the
-    pad up to the body (percentile below ``missing_height_mm``, no colour cue), ``ok``
-    when that percentile — a lower bound of the fillet height, which rises towards the
+    is already above the band (seen directly), ``missing`` when neither that percentile
+    nor the extrapolation reaches ``missing_height_mm`` (no colour cue), ``ok`` when
+    that percentile — a lower bound of the fillet height, which rises towards the
     body — already reaches the band's minimum, or when the reach is at least
     :data:`MIN_PASS_REACH` × ``min_fillet_reach`` and the extrapolation lies in the
     band: then the reason says "EXTRAPOLATED" with the reach, and ``max_method`` (in
@@ -245,11 +245,13 @@ def _joint_rule(joint, comp, m: JointMeasurement, comp_result: ComponentResult,
             return Verdict.EXCESS, (f"solder seen at {_um(seen)} > max {_um(joint.max_height_mm)} "
                                     f"(meniscus extrapolated to {_um(h)}, reach "
                                     f"{m.fillet_reach:.0%})")
-        if seen < config.missing_height_mm and not math.isfinite(m.bare_fraction):
-            # Nothing stands on the pad right up to the body margin: no fillet can hide
-            # in the band left (that needs no extrapolation).
-            return Verdict.MISSING, (f"no solder: the solder area reaches only {_um(seen)} "
-                                     f"< {_um(config.missing_height_mm)} up to the body")
+        if max(seen, h) < config.missing_height_mm and not math.isfinite(m.bare_fraction):
+            # Neither the solder seen nor its extrapolation (seen / reach, the generous
+            # reading) reaches the missing height: no solder.
+            return Verdict.MISSING, (f"no solder: the solder area reaches {_um(seen)} and its "
+                                     f"meniscus extrapolates to {_um(h)} (reach "
+                                     f"{m.fillet_reach:.0%}), both < "
+                                     f"{_um(config.missing_height_mm)}")
         if seen >= joint.min_height_mm and h <= joint.max_height_mm:
             return Verdict.OK, (f"max solder height {_um(h)}{pm} extrapolated (reach "
                                 f"{m.fillet_reach:.0%}); the solder seen reaches {_um(seen)} "

@@ -1387,14 +1387,17 @@ def random_board_case(board: Board | str | os.PathLike, seed: int, *,
         centre = size / 2 + off[axis]                 # board centre in the old image
         sgn = 1.0 if side in (0, 2) else -1.0
         reach = float((sgn * rel[:, axis]).max())
-        keep_mm = min(size, centre + sgn * (reach - depth)) if sgn > 0 else \
-            min(size, size - (centre - (reach - depth)))
-        new_n = max(int(keep_mm / p), 64)
+        other = float((-sgn * rel[:, axis]).max())
+        # Keep [a, b] of the old image: cut `depth` into the parts on one side, keep
+        # 1 mm beyond them on the other (the board centre stays near the image centre,
+        # inside the registration's search).
+        if sgn > 0:
+            a, b = max(0.0, centre - other - 1.0), centre + reach - depth
+        else:
+            a, b = centre - reach + depth, min(size, centre + other + 1.0)
+        new_n = max(int((b - a) / p) + 1, 64)
         new_size = (new_n - 1) * p
-        if sgn > 0:       # keep [0, keep]: the board centre stays at `centre`
-            off[axis] = centre - new_size / 2
-        else:             # keep [size - keep, size]
-            off[axis] = centre - (size - new_size) - new_size / 2
+        off[axis] = (centre - a) - new_size / 2
         if axis == 0:
             shape = (H, new_n)
         else:

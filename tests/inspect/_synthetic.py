@@ -80,19 +80,23 @@ def height_errors(result, labels, classes=("ok", "insufficient", "excess")) -> n
 
 
 def render_board_stack(root, defects: str, *, seed: int, textureless_joint: str | None = None,
-                       pixel_size_mm: float = 0.02):
+                       pixel_size_mm: float = 0.02, params=None, finish: str = "enig",
+                       board=None, z_mm=None):
     """Render the demo board with ``defects`` into a focal stack at ``root``.
 
     ``textureless_joint``: the albedo around that joint's pad (pad + 0.25 mm) is made
-    uniform and matt, so shape from focus cannot measure it. Returns (stack, labels).
+    uniform and matt, so shape from focus cannot measure it. ``params``, ``finish``:
+    see :func:`board_scene`; ``board``: another Board (e.g. the demo board without
+    fiducials); ``z_mm``: the sweep (default :data:`Z_MM`). Returns (stack, labels).
     """
     from smdinspect.inspect._geometry import apply2d, polygon_mask, world_to_pixel
     from smdinspect.optics import Optics
     from smdinspect.synth import Scene, render_stack
 
-    b = load_board(DEMO)
+    b = load_board(DEMO) if board is None else board
     scene, labels = board_scene(b, defects=parse_defects(defects, board=b),
-                                pixel_size_mm=pixel_size_mm, seed=seed)
+                                pixel_size_mm=pixel_size_mm, seed=seed, params=params,
+                                finish=finish)
     if textureless_joint is not None:
         poly = b.joint(textureless_joint).polygon_mm
         lo, hi = poly.min(axis=0) - 0.25, poly.max(axis=0) + 0.25
@@ -106,6 +110,6 @@ def render_board_stack(root, defects: str, *, seed: int, textureless_joint: str 
         specular = np.array(scene.specular)
         specular[m] = 0.0
         scene = Scene(scene.height_mm, albedo, pixel_size_mm, specular, scene.name, dict(scene.meta))
-    stack = render_stack(scene, Z_MM, optics=Optics(pixel_pitch_mm=pixel_size_mm), seed=seed,
+    stack = render_stack(scene, Z_MM if z_mm is None else z_mm, optics=Optics(pixel_pitch_mm=pixel_size_mm), seed=seed,
                          out=root, previews=False)
     return stack, labels

@@ -244,3 +244,39 @@ def test_randomised_boards_no_false_call_and_defects_found():
     assert n_def >= 10
     assert not false
     assert not missed
+
+
+# -- through a rendered focal stack and shape from focus ---------------------------------------
+
+
+def test_issue_cases_through_shape_from_focus(tmp_path):
+    """The issue's failures, rendered and reconstructed: a board without fiducials (OSP
+    copper), lifted leads of 0.10 and 0.30 mm, a tombstone tilted 20°, missing solder."""
+    import dataclasses
+
+    from smdinspect.pipeline import inspect_stack
+
+    from ._synthetic import render_board_stack
+
+    board = dataclasses.replace(load_board(DEMO), fiducials=())
+    defects = "U1.2:lifted_lead,U1.6:lifted_lead,R3.1:tombstone,C1.1:missing,R2.2:missing"
+    z = np.round(np.arange(-0.15, 1.9, 0.05) - 0.0123, 6)[::-1]
+    stack, labels = render_board_stack(tmp_path / "stack", defects, seed=31, board=board,
+                                       finish="osp", z_mm=z,
+                                       params={"U1.2": {"lift_mm": 0.10},
+                                               "U1.6": {"lift_mm": 0.30},
+                                               "R3.1": {"tilt_deg": 20.0}})
+    result = inspect_stack(stack, board, tmp_path / "out", html=False)
+    got = {j.id: j for j in result.joints}
+    assert got["U1.2"].verdict is Verdict.LIFTED_LEAD, got["U1.2"].reason
+    assert got["U1.6"].verdict is Verdict.LIFTED_LEAD, got["U1.6"].reason
+    assert got["R3.1"].verdict is Verdict.TOMBSTONE and got["R3.2"].verdict is Verdict.TOMBSTONE
+    assert got["C1.1"].verdict is Verdict.MISSING, got["C1.1"].reason
+    assert got["R2.2"].verdict is Verdict.MISSING, got["R2.2"].reason
+    good = [j for j in result.joints if j.id not in
+            ("U1.2", "U1.6", "R3.1", "R3.2", "C1.1", "R2.2")]
+    assert not [(j.id, j.verdict.value) for j in good if j.verdict.is_defect]
+    # An extrapolated pass says so in the verdict and in max_method.
+    for j in good:
+        if j.verdict is Verdict.OK and "extrapolated" in j.max_method:
+            assert "EXTRAPOLATED" in j.reason or "extrapolated" in j.reason
