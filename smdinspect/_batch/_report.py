@@ -26,13 +26,16 @@ def write_summary_csv(path: str | os.PathLike, results: Sequence[BoardResult]) -
 
     Booleans are ``true``/``false``; unknown counts (errored boards) are empty.
     """
+    from ..inspect._spc_report import safe_cell
+
     buf = io.StringIO()
     w = csv.DictWriter(buf, fieldnames=SUMMARY_COLUMNS, lineterminator="\n")
     w.writeheader()
     for r in results:
         row = r.to_row()
         row["skipped"] = "true" if row["skipped"] else "false"
-        w.writerow({k: ("" if v is None else v) for k, v in row.items()})
+        # board names and error texts come from files: no spreadsheet formulas
+        w.writerow({k: ("" if v is None else safe_cell(v)) for k, v in row.items()})
     return _atomic.write_text(path, buf.getvalue())
 
 

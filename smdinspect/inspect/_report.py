@@ -175,6 +175,8 @@ def _num(v):
 
 def joints_csv(result: InspectionResult) -> str:
     """``joints.csv``: one row per joint, columns :data:`CSV_COLUMNS` (mm, mm², mm³)."""
+    from ._spc_report import safe_cell
+
     buf = io.StringIO()
     w = csv.writer(buf, lineterminator="\n")
     w.writerow(CSV_COLUMNS)
@@ -186,6 +188,8 @@ def joints_csv(result: InspectionResult) -> str:
                 v = v.value
             elif isinstance(v, float):
                 v = "" if not math.isfinite(v) else f"{v:.6g}"
+            else:
+                v = safe_cell(v)  # ids and reasons come from board files: no formulas
             row.append(v)
         w.writerow(row)
     return buf.getvalue()

@@ -256,3 +256,18 @@ def test_labels_do_not_overlap_each_other_and_stay_near_their_pad():
     for m, (x0, y0, x1, y1) in zip(marks, boxes):
         cx, cy = m.polygon.mean(axis=0)
         assert np.hypot((x0 + x1) / 2 - cx, (y0 + y1) / 2 - cy) < 45
+
+
+def test_joints_csv_cells_cannot_run_as_spreadsheet_formulas(inspected):
+    import csv
+    import io
+
+    from smdinspect.inspect._report import joints_csv
+
+    joints = list(inspected.joints)
+    joints[0] = replace(joints[0], id="=HYPERLINK(\"x\")", component="+R1", reason="@SUM(A1)")
+    rows = list(csv.DictReader(io.StringIO(joints_csv(replace(inspected, joints=joints)))))
+    assert rows[0]["id"] == "'=HYPERLINK(\"x\")" and rows[0]["component"] == "'+R1"
+    assert rows[0]["reason"] == "'@SUM(A1)"
+    # numbers stay numbers, negative ones included
+    assert all(not r["measured_max_mm"].startswith("'") for r in rows)
