@@ -38,6 +38,21 @@ def test_demo_finds_every_injected_defect_and_no_false_call(tmp_path):
     # Most good joints are judged, not set aside.
     assert sum(v == "unreliable" for v in verdicts.values()) <= 3, verdicts
     assert report["exit_code"] == 1 and report["registration"]["fitness"] > 0.8
+    # no chip fillet above its termination (+ the solder seen over the cap): C1.1's
+    # meniscus fit once overshot to 2.32 mm on a 1.2 mm part
+    from smdinspect.inspect import load_board
+    from smdinspect.inspect._reference import body_top_mm
+
+    from smdinspect.demo import demo_board_path
+
+    board = load_board(demo_board_path())
+    chips = [j for j in report["joints"] if j["termination"] == "chip_end"
+             and j["measured"].get("max_height_mm") is not None]
+    assert chips
+    for j in chips:
+        m = j["measured"]
+        top = body_top_mm(board.component(j["component"]))
+        assert m["max_height_mm"] <= top + max(m.get("cap_excess_mm") or 0.0, 0.0) + 1e-3, j["id"]
 
     # The files a user is told to open.
     rep = out / "report"

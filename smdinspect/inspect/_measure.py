@@ -572,6 +572,12 @@ def _measure_chip(comp, joint, win: _Win, config: InspectConfig, level: float,
                 m.max_method = "percentile (bulging fillet)"
             elif np.isfinite(F):
                 m.max_mm, m.u_max_mm, m.max_method = F, _hypot(uF, u_level), "meniscus"
+                # A chip-end fillet wets the termination at most up to its top (solder
+                # over the cap is seen there directly, as cap_mm): a meniscus fitted
+                # higher is the fit overshooting, not solder.
+                ceiling = top + max(m.cap_mm if np.isfinite(m.cap_mm) else 0.0, 0.0)
+                if F > ceiling >= pct:
+                    m.max_mm, m.max_method = ceiling, "meniscus (capped at the termination top)"
     return m
 
 
