@@ -16,15 +16,15 @@
 
 from __future__ import annotations
 
-import csv
 import io
 import math
 import os
 from datetime import datetime, timezone
 from pathlib import Path
-from typing import Any, Iterable, Sequence
+from typing import Any
 
 from .. import __version__, _atomic
+from ..inspect._spc_report import _csv, _f
 from ._anova import ACCEPTABLE_PCT, MARGINAL_PCT
 from ._study import GRR_METRICS, GrrRow, GrrStudy
 
@@ -43,19 +43,6 @@ VALUE_COLUMNS = ("sweep", "operator", "joint", "component", "package", "terminat
                  "max_height_mm", "volume_mm3", "area_mm2")
 
 
-def _f(v: float, nd: int = 6) -> str:
-    return "" if v is None or not math.isfinite(v) else f"{v:.{nd}g}"
-
-
-def _csv(columns: Sequence[str], rows: Iterable[dict[str, Any]]) -> str:
-    from ..inspect._spc_report import safe_cell
-
-    buf = io.StringIO()
-    w = csv.DictWriter(buf, fieldnames=columns, lineterminator="\n")
-    w.writeheader()
-    for r in rows:
-        w.writerow({k: safe_cell(r.get(k, "")) for k in columns})
-    return buf.getvalue()
 
 
 def _interaction_p(row: GrrRow) -> float:

@@ -70,6 +70,22 @@ def presence_threshold_mm(comp) -> float:
     return 0.5 * (body_top_mm(comp) + lead_top_mm(comp))
 
 
+def _search_window(comp, shape, T, p, search_mm: float):
+    """The body's footprint grown by ``search_mm``, as placed by ``T``, cropped to the
+    image: ``(sub, window, c0, r0)`` (slices, bool mask within them, crop origin), or
+    None when less than 3 px of it lie in the image."""
+    hl, hw = comp.body_length_mm / 2 + search_mm, comp.body_width_mm / 2 + search_mm
+    win_b = comp.to_board([[-hl, -hw], [hl, -hw], [hl, hw], [-hl, hw]])
+    win_px = world_to_pixel(apply2d(T, win_b), shape=shape, pixel_size_mm=p)
+    c0, r0 = np.floor(win_px.min(axis=0)).astype(int) - 1
+    c1, r1 = np.ceil(win_px.max(axis=0)).astype(int) + 2
+    c0, r0, c1, r1 = max(c0, 0), max(r0, 0), min(c1, shape[1]), min(r1, shape[0])
+    if c1 - c0 < 3 or r1 - r0 < 3:
+        return None
+    return ((slice(r0, r1), slice(c0, c1)),
+            polygon_mask(win_px - [c0, r0], (r1 - r0, c1 - c0)), c0, r0)
+
+
 def body_blob(comp, height, reliable, T, p, *, search_mm: float,
               level: float = 0.0, exclude: np.ndarray | None = None) -> np.ndarray | None:
     """Mask of the measured body of ``comp`` (holes filled), or None when not found.
@@ -82,18 +98,12 @@ def body_blob(comp, height, reliable, T, p, *, search_mm: float,
     from scipy.ndimage import binary_fill_holes
 
     shape = height.shape
-    hl, hw = comp.body_length_mm / 2 + search_mm, comp.body_width_mm / 2 + search_mm
-    win_b = comp.to_board([[-hl, -hw], [hl, -hw], [hl, hw], [-hl, hw]])
-    win_px = world_to_pixel(apply2d(T, win_b), shape=shape, pixel_size_mm=p)
-    c0, r0 = np.floor(win_px.min(axis=0)).astype(int) - 1
-    c1, r1 = np.ceil(win_px.max(axis=0)).astype(int) + 2
-    c0, r0, c1, r1 = max(c0, 0), max(r0, 0), min(c1, shape[1]), min(r1, shape[0])
-    if c1 - c0 < 3 or r1 - r0 < 3:
+    found = _search_window(comp, shape, T, p, search_mm)
+    if found is None:
         return None
-    sub = (slice(r0, r1), slice(c0, c1))
-    window = polygon_mask(win_px - [c0, r0], (r1 - r0, c1 - c0))
+    sub, window, c0, r0 = found
     body_px = world_to_pixel(apply2d(T, comp.body_polygon_mm()), shape=shape, pixel_size_mm=p)
-    body = polygon_mask(body_px - [c0, r0], (r1 - r0, c1 - c0))
+    body = polygon_mask(body_px - [c0, r0], window.shape)
     cand = window & reliable[sub] & (height[sub] - level > presence_threshold_mm(comp))
     if exclude is not None:
         window = window & ~exclude[sub]
@@ -137,16 +147,10 @@ def _body_pair(comp, height, reliable, T, p, *,
     from scipy.ndimage import binary_fill_holes
 
     shape = height.shape
-    hl, hw = comp.body_length_mm / 2 + search_mm, comp.body_width_mm / 2 + search_mm
-    win_b = comp.to_board([[-hl, -hw], [hl, -hw], [hl, hw], [-hl, hw]])
-    win_px = world_to_pixel(apply2d(T, win_b), shape=shape, pixel_size_mm=p)
-    c0, r0 = np.floor(win_px.min(axis=0)).astype(int) - 1
-    c1, r1 = np.ceil(win_px.max(axis=0)).astype(int) + 2
-    c0, r0, c1, r1 = max(c0, 0), max(r0, 0), min(c1, shape[1]), min(r1, shape[0])
-    if c1 - c0 < 3 or r1 - r0 < 3:
+    found = _search_window(comp, shape, T, p, search_mm)
+    if found is None:
         return None
-    sub = (slice(r0, r1), slice(c0, c1))
-    window = polygon_mask(win_px - [c0, r0], (r1 - r0, c1 - c0))
+    sub, window, c0, r0 = found
     cand = window & reliable[sub] & (height[sub] > presence_threshold_mm(comp))
     if not cand.any():
         return None

@@ -81,23 +81,24 @@ def reconstruct(
     n = len(stack)
     z_mm = stack.z_mm
     alignment: Alignment | None = None
-    # frames decoded by the alignment pre-pass, kept (up to FRAME_CACHE_BYTES) for the
-    # main pass instead of being decoded twice
-    cache: dict[int, np.ndarray] = {}
+    # frames decoded (and made grey) by the alignment pre-pass, kept (up to
+    # FRAME_CACHE_BYTES) for the main pass instead of being decoded twice
+    cache: dict[int, tuple[np.ndarray, np.ndarray]] = {}
     pool = ThreadPoolExecutor(max_workers=config.workers, thread_name_prefix="sff")
     if config.align:
         cached = [0]
 
         def read(i: int) -> np.ndarray:
             image = stack.read_frame(i)
-            if cached[0] + image.nbytes <= FRAME_CACHE_BYTES:
-                cache[i] = image
-                cached[0] += image.nbytes
-            return image
+            gray = to_gray(image)
+            if cached[0] + image.nbytes + gray.nbytes <= FRAME_CACHE_BYTES:
+                cache[i] = image, gray
+                cached[0] += image.nbytes + gray.nbytes
+            return gray
 
         reads = _prefetch(read, n, pool, depth=config.workers + 1)
         try:
-            alignment = estimate_alignment(lambda i: to_gray(reads(i)), n)
+            alignment = estimate_alignment(reads, n)
         except BaseException:
             pool.shutdown(cancel_futures=True)
             raise
@@ -114,10 +115,10 @@ def reconstruct(
     operator = FocusOperator(config.operator)
 
     def load(i: int):
-        image = cache.pop(i, None)
+        image, gray = cache.pop(i, (None, None))
         if image is None:
             image = stack.read_frame(i)
-        gray = to_gray(image)
+            gray = to_gray(image)
         mean = float(gray.mean())
         # Same mean grey in every frame: exposure drift, flicker and auto-gain change the
         # focus measure, defocus does not change the mean (blur conserves light).
