@@ -7,7 +7,7 @@ load them when called.
 from ._align import Alignment, estimate_alignment
 from ._config import FitMethod, FocusConfig
 from ._confidence import confidence_map, unsupported_mask
-from ._depth import PeakFit, PeakTracker, fit_peaks
+from ._depth import PeakFit, PeakTracker, centroid_correction, fit_peaks
 from ._export import (
     height_field_mesh,
     render_height_png,
@@ -16,7 +16,7 @@ from ._export import (
     write_point_cloud,
     write_reconstruction,
 )
-from ._focus import OPERATORS, FocusOperator, focus_measure, noise_sigma
+from ._focus import OPERATORS, FocusOperator, focus_measure, focus_measure_moments, noise_sigma
 from ._reconstruct import reconstruct, to_gray
 from ._surface import Surface, pixel_to_xy_mm, xy_mm_to_pixel
 
@@ -29,10 +29,12 @@ __all__ = [
     "PeakFit",
     "PeakTracker",
     "Surface",
+    "centroid_correction",
     "confidence_map",
     "estimate_alignment",
     "fit_peaks",
     "focus_measure",
+    "focus_measure_moments",
     "height_field_mesh",
     "noise_sigma",
     "pixel_to_xy_mm",

@@ -69,6 +69,11 @@ class FocusConfig:
         fine level is unreliable for want of texture, a reliable coarse height is used
         (smoother, lower lateral resolution; never where the fine level found a halo).
         0 or 1 turns it off. Default 4.
+    centroid_correction : bool
+        A window on a slope measures the height under its focus energy's centroid, not
+        under its centre: move each fine-level height by the local slope times the
+        centroid's offset (operators that sum a per-pixel response only; see
+        :func:`smdinspect.sff.centroid_correction`). Default on.
     align : bool
         Register the frames (affine, by ECC) onto the most magnified frame's grid and
         resample their focus measures there; needed for ordinary (non-telecentric)
@@ -87,6 +92,7 @@ class FocusConfig:
     halo_ratio: float = 4.0
     support_steps: float = 1.5
     coarse_factor: int = 4
+    centroid_correction: bool = True
     align: bool = False
     workers: int = 2
 
@@ -125,6 +131,8 @@ class FocusConfig:
             raise InputError(f"support_steps must be >= 0 (0: off); got {self.support_steps!r}")
         if not isinstance(self.coarse_factor, int) or not 0 <= self.coarse_factor <= 16:
             raise InputError(f"coarse_factor must be an integer in 0..16; got {self.coarse_factor!r}")
+        if not isinstance(self.centroid_correction, bool):
+            raise InputError(f"centroid_correction must be true or false; got {self.centroid_correction!r}")
         if not isinstance(self.workers, int) or self.workers < 1:
             raise InputError(f"workers must be an integer >= 1; got {self.workers!r}")
 

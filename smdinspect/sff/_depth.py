@@ -23,13 +23,16 @@ import numpy as np
 
 from ._config import FitMethod
 
-__all__ = ["PeakFit", "PeakTracker", "fit_peaks"]
+__all__ = ["PeakFit", "PeakTracker", "centroid_correction", "fit_peaks"]
 
 _TINY = np.float32(1e-12)
 #: Samples beyond ±1 frame join the fit while above this fraction of the peak.
 SUPPORT_FRACTION = 0.2
 #: Pixels fitted at once per thread by :func:`fit_peaks` (bounds its memory).
 FIT_BLOCK_PX = 1 << 18
+#: Narrowest focus curve (σ_F in frame steps) whose frame sum is its integral to 1 %
+#: (2·exp(−2π²w²) = 0.01): below it :func:`centroid_correction` leaves a height alone.
+CENTROID_MIN_WIDTH_STEPS = 0.52
 #: Reliability (dB) reported for a peak fitted exactly through its 3 samples.
 R_EXACT_DB = 60.0
 
@@ -71,11 +74,16 @@ class PeakTracker:
         self._scratch = np.empty(shape, np.float32)
         self._zeros = np.zeros(shape, np.float32)
         self._nans = np.full(shape, np.nan, np.float32)
+        #: Σ Mx, Σ My and Σ F over the frames, when update() was given moments
+        self.moments: tuple[np.ndarray, np.ndarray, np.ndarray] | None = None
 
-    def update(self, n: int, focus: np.ndarray) -> np.ndarray:
+    def update(self, n: int, focus: np.ndarray, moments=None) -> np.ndarray:
         """Take frame ``n``'s focus measure; return the (H, W) bool mask of new bests.
 
-        The returned mask is reused by the next call: copy it to keep it.
+        ``moments`` (Mx, My, window_px), Mx and My of
+        :func:`~smdinspect.sff.focus_measure_moments`, if given, are summed with the focus
+        over the frames (:attr:`centroid_px`). The returned mask is
+        reused by the next call: copy it to keep it.
         """
         k, size = self.k, 2 * self.k + 1
         better = np.greater(focus, self.best, out=self._better)
@@ -85,6 +93,12 @@ class PeakTracker:
         np.minimum(self.floor, focus, out=self.floor)
         self._frame_no.fill(n)
         cv2.copyTo(self._frame_no, mask, self.best_idx)
+        if moments is not None and moments[0] is not None:
+            if self.moments is None:
+                self.window_px = moments[2]
+                self.moments = tuple(np.zeros(self.shape, np.float32) for _ in range(3))
+            for src, dst in zip((moments[0], moments[1], focus), self.moments):
+                np.add(dst, src, out=dst)
         far = np.less(self.best_idx, n - k, out=self._far)
         np.multiply(focus, far, out=self._scratch)
         np.maximum(self.after, self._scratch, out=self.after)
@@ -118,6 +132,24 @@ class PeakTracker:
         last = self.n_frames - 1
         for m in range(max(0, last - self.k + 1), last + 1):
             self._settle(m, upto=last)
+
+    @property
+    def centroid_px(self) -> tuple[np.ndarray, np.ndarray] | None:
+        """(dx, dy) float32: offset (px) of the centroid of each window's focus energy from
+        its centre, or None when update() had no moments.
+
+        The energy is summed over all frames above the curve's floor, so it weighs each
+        pixel of the window by its texture, not by how defocused it is in one frame (at
+        a coarse step the best frame favours the pixels nearest that frame's height).
+        The noise's centroid is the window's centre; offsets are clipped to the window.
+        """
+        if self.moments is None:
+            return None
+        mx, my, total = self.moments
+        den = total - np.float32(self.n_frames) * self.floor
+        np.maximum(den, np.float32(1e-30), out=den)
+        half = np.float32(self.window_px // 2)
+        return (np.clip(mx / den, -half, half), np.clip(my / den, -half, half))
 
     @property
     def alternative(self) -> np.ndarray:
@@ -367,3 +399,44 @@ def _weighted_parabola(u: list[np.ndarray], q: list[np.ndarray], wt: list[np.nda
     c = (s0 * (s2 * t2 - t1 * s3) - s1 * (s1 * t2 - t1 * s2) + t0 * m02) * scale
     c = np.where(ok, c, np.nan)
     return c.astype(np.float32), b.astype(np.float32), a.astype(np.float32)
+
+
+def centroid_correction(height_mm: np.ndarray, ok: np.ndarray, offset_px, *, window_px: int,
+                        max_mm: float, width_steps: np.ndarray | None = None) -> np.ndarray:
+    """Heights moved from under the window's focus-energy centroid to under its centre.
+
+    A window's focus curve is the sum of its pixels' curves, each weighted by its texture
+    energy; on a locally planar surface h(q) = h(p) + ∇h·(q − p) its peak lies at the
+    energy-weighted mean height, h(p) + ∇h·c with c the energy centroid's offset from
+    the window centre (:attr:`PeakTracker.centroid_px`). So h(p) = ĥ − ∇h·c, with ∇h
+    estimated from the ``ok`` heights themselves (normalised Gaussian convolution at a
+    quarter window, then central differences). Only ``ok`` pixels with enough ``ok``
+    neighbours move, by at most ``max_mm`` (a step edge is not a plane).
+
+    The centroid weighs each pixel by its focus summed over the frames; that sum is the
+    curve's integral, independent of where the pixel's height falls between frames, only
+    if the curve is sampled finely enough: for a Gaussian of width w steps the sum
+    varies by 2·exp(−2π²w²) with the fractional position (Poisson summation). Pixels
+    whose fitted width ``width_steps`` is below :data:`CENTROID_MIN_WIDTH_STEPS` (1 %)
+    are left as they are: at such coarse steps the weights favour the pixels nearest a
+    frame and the correction would pull heights away from the frames.
+    Returns a new float32 array.
+    """
+    dx, dy = offset_px
+    w = ok.astype(np.float32)
+    h = np.where(ok, height_mm, 0).astype(np.float32)
+    sigma = max(window_px / 4.0, 1.0)
+    den = cv2.GaussianBlur(w, (0, 0), sigma)
+    smooth = cv2.GaussianBlur(h, (0, 0), sigma) / np.maximum(den, np.float32(1e-6))
+    gx = cv2.Sobel(smooth, cv2.CV_32F, 1, 0, ksize=3, scale=0.125)
+    gy = cv2.Sobel(smooth, cv2.CV_32F, 0, 1, ksize=3, scale=0.125)
+    # the gradient needs reliable neighbours on every side of the 3x3 stencil
+    dense = cv2.erode((den >= 0.5).astype(np.uint8), np.ones((3, 3), np.uint8)).view(bool)
+    corr = gx * dx + gy * dy
+    np.clip(corr, -max_mm, max_mm, out=corr)
+    move = ok & dense
+    if width_steps is not None:
+        move &= np.nan_to_num(width_steps, nan=0.0) >= CENTROID_MIN_WIDTH_STEPS
+    corr[~move] = 0.0
+    return height_mm.astype(np.float32) - corr
+

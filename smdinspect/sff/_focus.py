@@ -42,7 +42,7 @@ import numpy as np
 
 from ..errors import InputError
 
-__all__ = ["OPERATORS", "FocusOperator", "focus_measure"]
+__all__ = ["OPERATORS", "FocusOperator", "focus_measure", "focus_measure_moments"]
 
 log = logging.getLogger(__name__)
 
@@ -873,6 +873,35 @@ def focus_measure(frame, *, operator="sml", window_px=9, threshold=0.0) -> np.nd
                 f"minimum of {low:g}"
             )
     return _OPERATORS[name](g, window_px, float(threshold))
+
+
+def focus_measure_moments(frame, *, operator="sml", window_px=9, threshold=0.0):
+    """The focus measure and the first moments of its per-pixel response over the window.
+
+    For the operators that sum a per-pixel response r over the window U
+    (``FocusOperator(op).uses_threshold``), returns ``(F, Mx, My)`` with F = Σ_U r (the same
+    as :func:`focus_measure`) and Mx = Σ_U r·(x_q − x_p), My = Σ_U r·(y_q − y_p): Mx/F,
+    My/F is the offset (px) of the window's energy centroid from its centre. A window on a
+    slope measures the height under that centroid, not under its centre; the SFF core
+    uses the offset to move the height back (``smdinspect.sff.centroid_correction``). For
+    every other operator Mx and My are None. Two more separable filters per frame.
+    """
+    name = _operator_name(operator)
+    if name not in _THRESHOLDED:
+        return focus_measure(frame, operator=name, window_px=window_px,
+                             threshold=threshold), None, None
+    g = _as_float32(frame)
+    _check_window(window_px, g.shape)
+    _check_threshold(threshold)
+    window_px = int(window_px)
+    resp = np.ascontiguousarray(_OPERATORS[name](g, 1, float(threshold)), dtype=np.float32)
+    focus = _window_sum(resp, window_px)
+    ones = _ones(window_px, np.float32)
+    ramp = np.arange(window_px, dtype=np.float32) - np.float32(window_px // 2)
+    # sepFilter2D correlates: kernel tap j multiplies r(p + j − h), i.e. offset j − h
+    mx = cv2.sepFilter2D(resp, -1, ramp, ones, borderType=_BORDER)
+    my = cv2.sepFilter2D(resp, -1, ones, ramp, borderType=_BORDER)
+    return focus, mx, my
 
 
 def noise_sigma(frame: np.ndarray) -> float:

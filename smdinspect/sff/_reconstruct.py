@@ -17,8 +17,8 @@ from ._align import Alignment, estimate_alignment
 from ._config import FitMethod, FocusConfig
 from ._confidence import (blur_px_per_frame, confidence_cues, confidence_map,
                           defocus_halo_mask, depth_edge_mask, unsupported_mask)
-from ._depth import PeakTracker, fit_peaks
-from ._focus import FocusOperator, focus_measure, noise_focus
+from ._depth import PeakTracker, centroid_correction, fit_peaks
+from ._focus import FocusOperator, focus_measure, focus_measure_moments, noise_focus
 from ._surface import Surface
 
 __all__ = ["reconstruct", "to_gray"]
@@ -113,6 +113,8 @@ def reconstruct(
                 "that focuses with the lens it is expected", 100 * trend)
     first = stack.frames[0].path
     operator = FocusOperator(config.operator)
+    moments_wanted = (config.centroid_correction and operator.uses_threshold
+                      and config.fit != FitMethod.ARGMAX)
 
     def load(i: int):
         image, gray = cache.pop(i, (None, None))
@@ -125,8 +127,14 @@ def reconstruct(
         norm = MEAN_GREY / mean if mean > 0 else 1.0
         if mean > 0:
             gray = gray * np.float32(norm)
-        focus = focus_measure(gray, operator=config.operator, window_px=config.window_px,
-                              threshold=config.threshold)
+        if moments_wanted:
+            focus, mx, my = focus_measure_moments(gray, operator=config.operator,
+                                                  window_px=config.window_px,
+                                                  threshold=config.threshold)
+        else:
+            focus = focus_measure(gray, operator=config.operator, window_px=config.window_px,
+                                  threshold=config.threshold)
+            mx = my = None
         if alignment is not None:
             if image.shape[:2] != alignment.shape:
                 raise _mismatch(stack.frames[i].path, image.shape, first, alignment.shape)
@@ -139,12 +147,20 @@ def reconstruct(
                 focus -= np.float32(noise)
                 focus *= np.float32(gain)
                 focus += np.float32(noise)
+                if mx is not None:  # the noise's centroid is the window centre
+                    mx *= np.float32(gain)
+                    my *= np.float32(gain)
+            if mx is not None:
+                # offsets in frame i's pixels -> the reference grid's
+                inv = np.linalg.inv(alignment.transforms[i][:2, :2]).astype(np.float32)
+                mx, my = (inv[0, 0] * mx + inv[0, 1] * my, inv[1, 0] * mx + inv[1, 1] * my)
+                mx, my = alignment.warp(mx, i), alignment.warp(my, i)
             focus = alignment.warp(focus, i)
             image = alignment.warp(image, i)
         small = None
         if config.coarse_factor > 1 and min(focus.shape) >= 8 * config.coarse_factor:
             small = _CoarseLevel.reduce(focus, config.coarse_factor)  # in the worker
-        return image, focus, small
+        return image, focus, small, (mx, my, config.window_px)
 
     tracker: PeakTracker | None = None
     coarse: _CoarseLevel | None = None
@@ -158,7 +174,7 @@ def reconstruct(
             while next_i < n and len(pending) < depth:
                 pending.append(pool.submit(load, next_i))
                 next_i += 1
-            image, focus, small = pending.popleft().result()
+            image, focus, small, moments = pending.popleft().result()
             if ref_shape is None:
                 ref_shape = image.shape
                 if min(image.shape[:2]) < config.window_px:
@@ -171,7 +187,7 @@ def reconstruct(
                 aif = np.zeros_like(image)
             elif image.shape != ref_shape:
                 raise _mismatch(stack.frames[i].path, image.shape, first, ref_shape)
-            better = tracker.update(i, focus)
+            better = tracker.update(i, focus, moments)
             if coarse is not None:
                 coarse.tracker.update(i, small)
             cv2.copyTo(image, better.view(np.uint8), aif)
@@ -188,6 +204,11 @@ def reconstruct(
         meta["alignment"] = alignment.summary()
     confidence[~field] = 0.0
     height = fit.coarse_mm if config.fit == FitMethod.ARGMAX else fit.height_mm
+    if tracker.centroid_px is not None:
+        height = centroid_correction(height, confidence >= config.min_confidence,
+                                     tracker.centroid_px, window_px=config.window_px,
+                                     max_mm=abs(stack.step_mm),
+                                     width_steps=fit.sigma_mm / np.float32(abs(stack.step_mm)))
     from_coarse = None
     if coarse is not None:
         height, confidence, from_coarse = coarse.merge(height, confidence, halo, field,
