@@ -1,13 +1,17 @@
 """Writers of a reconstruction: TIFF maps, previews, point cloud, mesh, summary.
 
-Every file is written atomically (temporary file + rename). Open3D, trimesh and
-matplotlib are imported inside the functions that need them.
+Every file is written atomically (temporary file + rename). Open3D, trimesh and VTK
+are imported inside the functions that need them; ``smdinspect reconstruct`` imports
+neither Open3D, trimesh nor matplotlib (the PLY files are written with plyfile and
+numpy, ``height.png`` is drawn with OpenCV).
 """
 
 from __future__ import annotations
 
 import logging
+import threading
 import time
+from concurrent.futures import ThreadPoolExecutor
 from pathlib import Path
 from typing import Any, Callable, Collection
 
@@ -66,20 +70,43 @@ def write_point_cloud(surface: Surface, path: str | Path, *, keep_unreliable: bo
     """Write ``cloud.ply``: binary little-endian PLY with float x, y, z (mm), uchar
     red/green/blue and float confidence per vertex (read by Open3D, trimesh, MeshLab,
     CloudCompare). Written with plyfile: importing Open3D only to write would cost more
-    than the write."""
+    than the write. The points are those of :meth:`Surface.points`, built here straight
+    into the file's float32/uint8 record (no float64 or full-image float copies)."""
     plyfile = _require("plyfile")
-    xyz, rgb, conf, _ = surface.points(keep_unreliable=keep_unreliable)
-    vertex = np.empty(len(xyz), dtype=[("x", "<f4"), ("y", "<f4"), ("z", "<f4"), ("red", "u1"),
-                                       ("green", "u1"), ("blue", "u1"), ("confidence", "<f4")])
-    for i, axis in enumerate("xyz"):
-        vertex[axis] = xyz[:, i]
+    h, w = surface.shape
+    mask = None if keep_unreliable else surface.reliable
+    index = np.arange(h * w) if mask is None else np.flatnonzero(mask)
+    rows, cols = np.divmod(index, w)
+    vertex = np.empty(len(index), dtype=[("x", "<f4"), ("y", "<f4"), ("z", "<f4"), ("red", "u1"),
+                                         ("green", "u1"), ("blue", "u1"), ("confidence", "<f4")])
+    p = 1.0 if surface.pixel_size_mm is None else float(surface.pixel_size_mm)
+    vertex["x"] = cols * p
+    vertex["y"] = (h - 1 - rows) * p
+    del rows, cols
+    vertex["z"] = surface.height_mm.ravel()[index]
+    rgb = _rgb8(surface.aif, index)
     for i, channel in enumerate(("red", "green", "blue")):
-        vertex[channel] = np.round(rgb[:, i] * 255)
-    vertex["confidence"] = conf
+        vertex[channel] = rgb[:, i]
+    del rgb
+    vertex["confidence"] = surface.confidence.ravel()[index]
+    del index
     ply = plyfile.PlyData([plyfile.PlyElement.describe(vertex, "vertex")], byte_order="<")
     with _atomic.atomic_path(path) as tmp:
         ply.write(str(tmp))
     return Path(path)
+
+
+def _rgb8(image: np.ndarray, index: np.ndarray) -> np.ndarray:
+    """(N, 3) uint8 colours of the pixels at flat ``index`` of an (H, W) or (H, W, 3)
+    image; the same values as ``round(_unit_rgb(image) * 255)``, without converting
+    the whole image."""
+    img = np.asarray(image)
+    flat = img.reshape(-1, 3) if img.ndim == 3 else img.reshape(-1)
+    v = flat[index]
+    if v.dtype != np.uint8:
+        v = np.round(_unit_rgb(v) * 255).astype(np.uint8)
+        return v.reshape(-1, 3)
+    return v if v.ndim == 2 else np.repeat(v[:, None], 3, axis=1)
 
 
 def height_field_mesh(surface: Surface, *, keep_unreliable: bool = False,
@@ -123,7 +150,7 @@ def _mesh_arrays(surface: Surface, *, keep_unreliable: bool, max_side: int, dens
     # y grows upwards (rows downwards), so (a, c, b) is counter-clockwise seen from +z
     faces = np.concatenate([np.column_stack([a, c, b]), np.column_stack([b, c, d])])
     faces = faces[ok[faces].all(axis=1)]
-    colours = np.round(_unit_rgb(surface.aif)[rr, cc].reshape(-1, 3) * 255).astype(np.uint8)
+    colours = _rgb8(surface.aif, (rr * w + cc).ravel())
     used = np.zeros(len(verts), bool)
     used[faces.ravel()] = True
     remap = np.cumsum(used) - 1
@@ -132,86 +159,90 @@ def _mesh_arrays(surface: Surface, *, keep_unreliable: bool, max_side: int, dens
 
 def write_mesh(surface: Surface, out_dir: str | Path, names: Collection[str] = ("mesh.ply", "mesh.stl"),
                *, keep_unreliable: bool = False) -> int:
-    """Write the height-field mesh as ``mesh.ply`` (binary, vertex colours; trimesh) and/or
-    ``mesh.stl`` (binary; numpy-stl). Returns the face count.
+    """Write the height-field mesh as ``mesh.ply`` (binary little-endian, float x, y, z in
+    mm, uchar vertex colours, int triangle indices) and/or ``mesh.stl`` (binary;
+    numpy-stl). Returns the face count.
 
-    trimesh (0.5 s to import) is loaded only for ``mesh.ply``: plyfile writes list
-    properties one face at a time (0.77 s for 290 000 faces), numpy-stl has no PLY."""
+    ``mesh.ply`` is written with numpy in the standard PLY layout (trimesh costs 0.5 s
+    to import, plyfile writes list properties one face at a time)."""
     verts, faces, rgb = _mesh_arrays(surface, keep_unreliable=keep_unreliable,
                                      max_side=MESH_MAX_SIDE, dense=True)
     out = Path(out_dir)
     if "mesh.ply" in names:
-        trimesh = _require("trimesh")
-        mesh = trimesh.Trimesh(vertices=verts, faces=faces, process=False,
-                               vertex_colors=np.column_stack([rgb, np.full(len(rgb), 255, np.uint8)]))
-        with _atomic.atomic_path(out / "mesh.ply") as tmp:
-            mesh.export(tmp, file_type="ply")
+        write_mesh_ply(out / "mesh.ply", verts, faces, rgb)
     if "mesh.stl" in names:
         stl = _require("stl.mesh")
         m = stl.Mesh(np.zeros(len(faces), dtype=stl.Mesh.dtype))
-        m.vectors[:] = verts[faces].astype(np.float32)
+        m.vectors[:] = verts.astype(np.float32)[faces]
         m.update_normals()
         with _atomic.atomic_path(out / "mesh.stl") as tmp:
             m.save(str(tmp), mode=_require("stl").Mode.BINARY)
     return int(len(faces))
 
 
-def _figure(width_in: float, height_in: float, dpi: int = 110):
-    _require("matplotlib")
-    from matplotlib.backends.backend_agg import FigureCanvasAgg
-    from matplotlib.figure import Figure
+def write_mesh_ply(path: str | Path, vertices: np.ndarray, faces: np.ndarray,
+                   rgb: np.ndarray | None = None) -> Path:
+    """Write a triangle mesh as binary little-endian PLY, atomically.
 
-    fig = Figure(figsize=(width_in, height_in), dpi=dpi)
-    FigureCanvasAgg(fig)
-    return fig
-
-
-def _save_figure(fig, path: Path) -> Path:
-    with _atomic.atomic_path(path) as tmp:
-        fig.savefig(tmp, format="png")
-    return path
+    Parameters
+    ----------
+    vertices : (V, 3) float
+        x, y, z in mm (stored as float32).
+    faces : (F, 3) int
+        Vertex indices of each triangle (stored as ``property list uchar int
+        vertex_indices``, the layout trimesh, Open3D and MeshLab read).
+    rgb : (V, 3) uint8, optional
+        Vertex colours (``red``, ``green``, ``blue``).
+    """
+    vertices = np.asarray(vertices)
+    faces = np.asarray(faces)
+    if vertices.ndim != 2 or vertices.shape[1] != 3:
+        raise InputError(f"vertices must be (V, 3); got shape {vertices.shape}")
+    if faces.ndim != 2 or faces.shape[1] != 3:
+        raise InputError(f"faces must be (F, 3); got shape {faces.shape}")
+    if rgb is not None and np.shape(rgb) != (len(vertices), 3):
+        raise InputError(f"rgb must be ({len(vertices)}, 3) colours, one per vertex; got shape "
+                         f"{np.shape(rgb)}")
+    fields = [("x", "<f4"), ("y", "<f4"), ("z", "<f4")]
+    if rgb is not None:
+        fields += [("red", "u1"), ("green", "u1"), ("blue", "u1")]
+    vertex = np.empty(len(vertices), dtype=fields)
+    for i, axis in enumerate("xyz"):
+        vertex[axis] = vertices[:, i]
+    if rgb is not None:
+        for i, channel in enumerate(("red", "green", "blue")):
+            vertex[channel] = rgb[:, i]
+    face = np.empty(len(faces), dtype=[("n", "u1"), ("v", "<i4", (3,))])
+    face["n"] = 3
+    face["v"] = faces
+    kinds = {"<f4": "float", "u1": "uchar"}
+    header = ["ply", "format binary_little_endian 1.0", "comment smdinspect height-field mesh, mm",
+              f"element vertex {len(vertex)}",
+              *(f"property {kinds[t]} {name}" for name, t in fields),
+              f"element face {len(face)}", "property list uchar int vertex_indices", "end_header"]
+    with _atomic.atomic_path(path) as tmp, open(tmp, "wb") as fh:
+        fh.write(("\n".join(header) + "\n").encode("ascii"))
+        fh.write(vertex.data)
+        fh.write(face.data)
+    return Path(path)
 
 
 def _display_range(surface: Surface) -> tuple[float, float]:
-    vals = surface.height_mm[surface.reliable]
-    if vals.size < 10:
-        vals = surface.height_mm.ravel()
-    lo, hi = np.percentile(vals, [0.5, 99.5])
-    if hi - lo < 1e-6:
-        hi = lo + 1e-3
-    return float(lo), float(hi)
+    from ._heightpng import display_range
+
+    return display_range(surface.height_mm, surface.reliable)
 
 
 def render_height_png(surface: Surface, path: str | Path) -> Path:
-    """Colour-mapped heights with a legend in mm; unreliable pixels shown grey."""
-    path = Path(path)
-    h, w = surface.shape
-    lo, hi = _display_range(surface)
-    fig = _figure(7.0, 7.0 * h / w + 0.6)
-    ax = fig.add_axes([0.02, 0.06, 0.80, 0.88])
-    masked = np.ma.masked_where(~surface.reliable, surface.height_mm)
-    ax.set_facecolor((0.55, 0.55, 0.55))
-    im = ax.imshow(masked, cmap="viridis", vmin=lo, vmax=hi, interpolation="nearest")
-    ax.set_xticks([])
-    ax.set_yticks([])
-    ax.set_title(f"height above board (mm); grey: unreliable ({100 * (1 - surface.coverage):.1f}%)",
-                 fontsize=9)
-    cax = fig.add_axes([0.85, 0.06, 0.035, 0.88])
-    fig.colorbar(im, cax=cax, label="height (mm)")
-    if surface.pixel_size_mm:
-        bar_mm = _nice(w * surface.pixel_size_mm / 5)
-        bar_px = bar_mm / surface.pixel_size_mm
-        ax.plot([0.04 * w, 0.04 * w + bar_px], [0.95 * h] * 2, color="white", lw=3)
-        ax.text(0.04 * w, 0.93 * h, f"{bar_mm:g} mm", color="white", fontsize=8)
-    return _save_figure(fig, path)
+    """Write ``height.png``: colour-mapped heights (viridis over the robust range of
+    :func:`_display_range`) with a colour bar in mm, a scale bar (mm; pixels when the
+    pixel size is unknown) and the unreliable pixels pale grey, their share written on
+    it. Drawn with OpenCV (:func:`smdinspect.sff._heightpng.render_height_map`)."""
+    from ._heightpng import render_height_map
 
-
-def _nice(x: float) -> float:
-    e = 10 ** np.floor(np.log10(x))
-    for m in (1, 2, 5, 10):
-        if m * e >= x:
-            return float(m * e)
-    return float(10 * e)
+    image = render_height_map(surface.height_mm, surface.reliable, aif=surface.aif,
+                              pixel_size_mm=surface.pixel_size_mm)
+    return _atomic.write_image(path, image)
 
 
 def render_view3d_png(surface: Surface, path: str | Path, *, max_side: int = 384,
@@ -275,46 +306,86 @@ def write_reconstruction(
         wanted -= {"height.png", "view3d.png"}
     out = Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)
-    paths: dict[str, Path] = {}
-
-    def put(name: str, write: Callable[[Path], Any]) -> None:
-        if name in wanted:
-            write(out / name)
-            paths[name] = out / name
-
-    put("height_mm.tiff", lambda p: _atomic.write_tiff(p, surface.height_mm.astype(np.float32)))
-    put("confidence.tiff", lambda p: _atomic.write_tiff(p, surface.confidence.astype(np.float32)))
-    put("sigma_mm.tiff", lambda p: _atomic.write_tiff(p, surface.sigma_mm.astype(np.float32)))
-    put("aif.png", lambda p: _atomic.write_image(p, _png_ready(surface.aif)))
-    put("height_filled_mm.tiff", lambda p: _atomic.write_tiff(p, surface.dense[0]))
-    put("sigma_filled_mm.tiff", lambda p: _atomic.write_tiff(p, surface.dense[2]))
-    put("filled.png", lambda p: _atomic.write_image(p, surface.dense[1].astype(np.uint8) * 255))
-    put("field.png", lambda p: _atomic.write_image(p, surface.field.astype(np.uint8) * 255))
-    put("height.png", lambda p: render_height_png(surface, p))
-    put("view3d.png", lambda p: render_view3d_png(surface, p))
     measured = bool(surface.reliable.any())
-    mesh_faces = 0
-    if measured:
-        put("cloud.ply", lambda p: write_point_cloud(surface, p, keep_unreliable=keep_unreliable))
-        names = wanted & {"mesh.ply", "mesh.stl"}
-        if names:
-            mesh_faces = write_mesh(surface, out, names, keep_unreliable=keep_unreliable)
-            paths.update({name: out / name for name in names})
-    else:
+    if not measured:
         log.info("nothing could be measured: no pixel has a reliable focus peak; "
-                    "no cloud.ply or mesh written")
-    reliable = surface.height_mm[surface.reliable]
+                 "no cloud.ply or mesh written")
+        wanted -= {"cloud.ply", "mesh.ply", "mesh.stl"}
+
+    dense_lock = threading.Lock()
+
+    def dense():  # Surface.dense once, whichever thread asks first
+        with dense_lock:
+            return surface.dense
+
+    def import_vtk() -> None:
+        from ._view3d import _vtk
+
+        _vtk()
+
+    def mesh() -> int:
+        dense()
+        return write_mesh(surface, out, wanted & {"mesh.ply", "mesh.stl"},
+                          keep_unreliable=keep_unreliable)
+
+    stats: dict[str, Any] = {}
+
+    def height_stats() -> None:
+        reliable = surface.height_mm[surface.reliable]
+        stats["height_mm"] = None if reliable.size == 0 else {
+            "min": float(reliable.min()), "p01": float(np.percentile(reliable, 1)),
+            "median": float(np.median(reliable)), "p99": float(np.percentile(reliable, 99)),
+            "max": float(reliable.max()),
+        }
+
+    f32 = np.float32
+    # Two lanes of independent writers. This thread: the dense surface, then view3d.png
+    # (offscreen VTK render, the longest); the other thread meanwhile imports VTK and
+    # writes the rest. The big allocations (dense fill, render) stay on this thread,
+    # whose heap the reconstruction has left free: a second thread allocates from a
+    # malloc arena of its own, and more threads cost more memory than they save on two
+    # cores.
+    here: list[tuple[tuple[str, ...], Callable[[], Any]]] = [
+        (tuple(_DENSE_OUTPUTS), dense),
+        (("view3d.png",), lambda: render_view3d_png(surface, out / "view3d.png")),
+    ]
+    there: list[tuple[tuple[str, ...], Callable[[], Any]]] = [
+        (("view3d.png",), import_vtk),
+        (("height.png",), lambda: render_height_png(surface, out / "height.png")),
+        (("cloud.ply",), lambda: write_point_cloud(surface, out / "cloud.ply",
+                                                   keep_unreliable=keep_unreliable)),
+        (("aif.png",), lambda: _atomic.write_image(out / "aif.png", _png_ready(surface.aif))),
+        (("height_mm.tiff",), lambda: _atomic.write_tiff(
+            out / "height_mm.tiff", np.asarray(surface.height_mm, f32))),
+        (("confidence.tiff",), lambda: _atomic.write_tiff(
+            out / "confidence.tiff", np.asarray(surface.confidence, f32))),
+        (("sigma_mm.tiff",), lambda: _atomic.write_tiff(
+            out / "sigma_mm.tiff", np.asarray(surface.sigma_mm, f32))),
+        (("field.png",), lambda: _atomic.write_image(out / "field.png", _mask_png(surface.field))),
+        (("mesh.ply", "mesh.stl"), mesh),
+        (("height_filled_mm.tiff",), lambda: _atomic.write_tiff(
+            out / "height_filled_mm.tiff", np.asarray(dense()[0], f32))),
+        (("sigma_filled_mm.tiff",), lambda: _atomic.write_tiff(
+            out / "sigma_filled_mm.tiff", np.asarray(dense()[2], f32))),
+        (("filled.png",), lambda: _atomic.write_image(out / "filled.png", _mask_png(dense()[1]))),
+        (("summary.json",), height_stats),
+    ]
+    here = [(names, fn) for names, fn in here if wanted & set(names)]
+    there = [(names, fn) for names, fn in there if wanted & set(names)]
+    _, results = _run_lanes([[fn for _, fn in here], [fn for _, fn in there]])
+    mesh_faces = 0
+    for (names, _), result in zip(there, results):
+        if names == ("mesh.ply", "mesh.stl"):
+            mesh_faces = int(result)
+    paths = {name: out / name for name in RECONSTRUCTION_OUTPUTS
+             if name in wanted and name != "summary.json"}
     summary = {
         "smdinspect": "reconstruction",
         "pixel_size_mm": surface.pixel_size_mm,
         "xy_units": "mm" if surface.pixel_size_mm else "px",
         "measured": measured,
         "coverage": round(surface.coverage, 4),
-        "height_mm": None if reliable.size == 0 else {
-            "min": float(reliable.min()), "p01": float(np.percentile(reliable, 1)),
-            "median": float(np.median(reliable)), "p99": float(np.percentile(reliable, 99)),
-            "max": float(reliable.max()),
-        },
+        "height_mm": stats["height_mm"],
         "cloud_points": 0 if not measured else int(surface.reliable.sum() if not keep_unreliable
                                                    else surface.reliable.size),
         "mesh_faces": mesh_faces,
@@ -326,6 +397,54 @@ def write_reconstruction(
     summary["files"] = sorted(list(paths) + ["summary.json"])
     paths["summary.json"] = _atomic.write_json(out / "summary.json", summary)
     return paths
+
+
+#: Outputs made from :attr:`Surface.dense`.
+_DENSE_OUTPUTS = frozenset({"view3d.png", "mesh.ply", "mesh.stl", "height_filled_mm.tiff",
+                            "sigma_filled_mm.tiff", "filled.png"})
+
+
+def _run_lanes(lanes: list[list[Callable[[], Any]]]) -> list[list[Any]]:
+    """Run the jobs of ``lanes[0]`` on this thread and those of every other lane on a
+    thread of its own, each lane in order; returns every job's result, by lane.
+
+    The first error stops this thread's lane, cancels the other lanes' jobs not yet
+    started, waits for the running ones (nothing writes into the folder after this
+    returns) and is raised.
+    """
+    if sum(1 for lane in lanes if lane) < 2:  # nothing to overlap
+        return [[job() for job in lane] for lane in lanes]
+    here, others = lanes[0], [lane for lane in lanes[1:] if lane]
+    cancelled = threading.Event()
+
+    def run(lane):
+        results = []
+        for job in lane:
+            if cancelled.is_set():
+                break
+            results.append(job())
+        return results
+
+    with ThreadPoolExecutor(max_workers=len(others), thread_name_prefix="smdinspect-write") as pool:
+        futures = [pool.submit(run, lane) for lane in others]
+        try:
+            mine = []
+            for job in here:
+                for f in futures:
+                    if f.done() and f.exception() is not None:
+                        raise f.exception()
+                mine.append(job())
+            theirs = [f.result() for f in futures]
+        except BaseException:
+            cancelled.set()  # leaving the pool waits for the running writers: none
+            raise  # writes into the folder after the caller has removed it
+    it = iter(theirs)
+    return [mine] + [next(it) if lane else [] for lane in lanes[1:]]
+
+
+def _mask_png(mask: np.ndarray) -> np.ndarray:
+    """A bool mask as an 8-bit image: 255 where True."""
+    return np.asarray(mask, bool).view(np.uint8) * np.uint8(255)
 
 
 def _png_ready(image: np.ndarray) -> np.ndarray:

