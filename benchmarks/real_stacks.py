@@ -247,6 +247,7 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--quick", action="store_true", help="skip the CLI timing")
     p.add_argument("--data", type=Path, default=REPO.parent / "shared" / "data")
     p.add_argument("--operator", default=None, help="focus operator (default: FocusConfig's)")
+    p.add_argument("--prefilter", default="0", help="noise pre-filter σ px or 'auto' (default 0)")
     args = p.parse_args(argv)
     names = [s.strip() for s in args.stacks.split(",") if s.strip()]
     unknown = [s for s in names if s not in STACKS]
@@ -257,7 +258,9 @@ def main(argv: list[str] | None = None) -> int:
             print(f"error: data folder not found: {args.data / name}", file=sys.stderr)
             return 2
 
-    config = FocusConfig(align=True, **({"operator": args.operator} if args.operator else {}))
+    prefilter = args.prefilter if args.prefilter == "auto" else float(args.prefilter)
+    config = FocusConfig(align=True, prefilter_px=prefilter,
+                         **({"operator": args.operator} if args.operator else {}))
     print(f"load average {' '.join(f'{x:.2f}' for x in os.getloadavg())} on {os.cpu_count()} CPUs; "
           f"config {config.to_dict()}")
     results = {}

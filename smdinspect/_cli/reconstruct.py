@@ -33,6 +33,10 @@ def add_stack_arguments(p: argparse.ArgumentParser) -> None:
                    help="pixels below this confidence are unreliable (default 0.5)")
     p.add_argument("--align", action="store_true",
                    help="register frames first (ordinary, non-telecentric lenses)")
+    p.add_argument("--prefilter", default="0", metavar="auto|PX",
+                   help="Gaussian σ (px) smoothing each frame before the focus measure, against "
+                        "sensor noise; 'auto' picks it from the sweep's noise-only frequencies "
+                        "(default 0: off)")
     p.add_argument("--workers", type=int, default=2, help="decode/focus threads (default 2)")
     p.add_argument("--keep-unreliable", action="store_true",
                    help="keep unreliable points in cloud.ply and the mesh")
@@ -44,9 +48,15 @@ def focus_config_from(args: argparse.Namespace):
 
     if args.operator == "auto":  # reconstruct resolves it first (_cli/study.py)
         raise InputError("--operator auto is only available in smdinspect reconstruct")
+    prefilter = getattr(args, "prefilter", "0")
+    if prefilter != "auto":
+        try:
+            prefilter = float(prefilter)
+        except ValueError:
+            raise InputError(f"--prefilter must be 'auto' or a number of pixels; got {prefilter!r}") from None
     return FocusConfig(operator=args.operator, window_px=args.window_px, fit=args.fit,
                        fit_half_width=args.fit_half_width, min_confidence=args.min_confidence,
-                       align=args.align, workers=args.workers)
+                       prefilter_px=prefilter, align=args.align, workers=args.workers)
 
 
 def register(sub: argparse._SubParsersAction) -> None:

@@ -16,7 +16,8 @@ from ._export import (
     write_point_cloud,
     write_reconstruction,
 )
-from ._focus import OPERATORS, FocusOperator, focus_measure, focus_measure_moments, noise_sigma
+from ._focus import (OPERATORS, FocusOperator, band_powers, focus_measure, focus_measure_moments,
+                     noise_sigma, prefilter_sigma)
 from ._reconstruct import reconstruct, to_gray
 from ._surface import Surface, pixel_to_xy_mm, xy_mm_to_pixel
 
@@ -29,6 +30,7 @@ __all__ = [
     "PeakFit",
     "PeakTracker",
     "Surface",
+    "band_powers",
     "centroid_correction",
     "confidence_map",
     "estimate_alignment",
@@ -38,6 +40,7 @@ __all__ = [
     "height_field_mesh",
     "noise_sigma",
     "pixel_to_xy_mm",
+    "prefilter_sigma",
     "reconstruct",
     "render_height_png",
     "render_view3d_png",

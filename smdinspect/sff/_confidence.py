@@ -85,7 +85,8 @@ def confidence_map(fit: PeakFit, *, window_px: int = 9,
     return conf
 
 
-def confidence_cues(fit: PeakFit, *, window_px: int = 9) -> dict[str, np.ndarray]:
+def confidence_cues(fit: PeakFit, *, window_px: int = 9,
+                    noise_spread_gain: float = 1.0) -> dict[str, np.ndarray]:
     """The five cues of :func:`confidence_map`, each (H, W) in [0, 1].
 
     The noise test: on a textureless pixel the focus curve is the
@@ -93,6 +94,9 @@ def confidence_cues(fit: PeakFit, *, window_px: int = 9) -> dict[str, np.ndarray
     as 1/√N with the N = window_px² pixels summed, so the peak-to-floor ratio A/b it can
     fake shrinks as 1/window_px. The ramp is on (A/b)·window_px/9: at the default 9-px
     window from A/b = 1.2 (0) to 2.2 (1); a 5-px window needs 1.8× more.
+    ``noise_spread_gain`` (≥ 1 with a noise pre-filter: its correlated noise sums fewer
+    independent responses, :func:`~smdinspect.sff._focus.noise_focus_spread`) divides
+    the ratio's excess over 1 alike.
     """
     r = np.nan_to_num(fit.reliability_db, nan=0.0)
     c_r = _ramp(r, R_LOW_DB, R_HIGH_DB)
@@ -105,6 +109,8 @@ def confidence_cues(fit: PeakFit, *, window_px: int = 9) -> dict[str, np.ndarray
         c_w = np.ones_like(c_r)
     with np.errstate(divide="ignore", invalid="ignore"):
         snr = np.nan_to_num(fit.f_best / fit.floor, nan=0.0, posinf=1e6) * (window_px / 9.0)
+    if noise_spread_gain != 1.0:
+        snr = 1.0 + (snr - 1.0) / np.float32(noise_spread_gain)
     return {"reliability": c_r, "width": c_w,
             "ambiguity": _ramp(fit.ambiguity, AMBIG_BAD, AMBIG_OK),
             "second_mode": _ramp(fit.second_mode, SECOND_BAD, SECOND_OK),

@@ -42,7 +42,8 @@ import numpy as np
 
 from ..errors import InputError
 
-__all__ = ["OPERATORS", "FocusOperator", "focus_measure", "focus_measure_moments"]
+__all__ = ["OPERATORS", "FocusOperator", "band_powers", "focus_measure", "focus_measure_moments",
+           "prefilter_sigma"]
 
 log = logging.getLogger(__name__)
 
@@ -924,15 +925,137 @@ def noise_sigma(frame: np.ndarray) -> float:
     return float(np.sqrt(np.pi / 2) / 6.0 * np.mean(np.abs(r), dtype=np.float64))
 
 
-@lru_cache(maxsize=64)
-def noise_focus(operator: str, window_px: int, threshold: float = 0.0) -> float:
-    """Median focus measure of white noise of σ = 1 (grey levels) around a mid grey.
+# --------------------------------------------------------------------------- noise band
+
+#: Tiles (side, px; grid per axis) whose power spectra :func:`band_powers` measures.
+BAND_TILE_PX = 64
+BAND_GRID = 4
+#: Upper edges (cycles/px) of the radial frequency bands, up to Nyquist.
+BAND_EDGES = np.linspace(0.05, 0.5, 10)
+#: A band is informative when defocus changes its power by at least this factor: the
+#: power is texture + noise in the sharpest frame and about noise alone in the most
+#: blurred one, so the factor is 1 + the band's signal-to-noise ratio (1 here).
+BAND_MODULATION_MIN = 2.0
+#: Frames (evenly spaced) whose spectra :func:`prefilter_sigma` compares at most.
+BAND_MAX_FRAMES = 16
+
+
+@lru_cache(maxsize=4)
+def _band_layout(tile: int):
+    y, x = np.mgrid[:tile, :tile]
+    r = np.hypot(np.minimum(y, tile - y), np.minimum(x, tile - x)) / tile
+    band = np.minimum(np.searchsorted(BAND_EDGES, r, side="right"), len(BAND_EDGES))
+    counts = np.bincount(band.ravel(), minlength=len(BAND_EDGES) + 1)[:len(BAND_EDGES)]
+    window = np.outer(np.hanning(tile), np.hanning(tile)).astype(np.float32)
+    return band.ravel(), np.maximum(counts, 1), window
+
+
+def band_powers(gray: np.ndarray) -> np.ndarray | None:
+    """(tiles, bands) mean power spectrum of :data:`BAND_GRID`² tiles of one grey frame in
+    the radial bands ending at :data:`BAND_EDGES`; None for frames smaller than a tile."""
+    h, w = gray.shape
+    t = BAND_TILE_PX
+    if min(h, w) < t:
+        return None
+    band, counts, window = _band_layout(t)
+    out = np.empty((BAND_GRID * BAND_GRID, len(BAND_EDGES)))
+    for i in range(BAND_GRID):
+        for j in range(BAND_GRID):
+            r0 = min(max(0, int((i + 0.5) * h / BAND_GRID) - t // 2), h - t)
+            c0 = min(max(0, int((j + 0.5) * w / BAND_GRID) - t // 2), w - t)
+            tile = gray[r0:r0 + t, c0:c0 + t].astype(np.float32)
+            tile = (tile - tile.mean()) * window
+            power = np.abs(np.fft.fft2(tile)) ** 2
+            out[i * BAND_GRID + j] = np.bincount(band, power.ravel(),
+                                                 minlength=len(BAND_EDGES) + 1)[:len(BAND_EDGES)] / counts
+    return out
+
+
+def _modulation(powers: np.ndarray) -> np.ndarray:
+    """Per band: max/min power over the frames, upper quartile over the tiles (the textured
+    parts of the field decide). ``powers``: (frames, tiles, bands)."""
+    ratio = powers.max(axis=0) / np.maximum(powers.min(axis=0), 1e-12)
+    return np.percentile(ratio, 75, axis=0)
+
+
+@lru_cache(maxsize=32)
+def _noise_modulation(frames: int) -> np.ndarray:
+    """:func:`_modulation` of white noise in ``frames`` frames (fixed seed)."""
+    rng = np.random.default_rng(0)
+    side = BAND_TILE_PX * BAND_GRID
+    return _modulation(np.asarray([band_powers(rng.standard_normal((side, side)).astype(np.float32))
+                                   for _ in range(frames)]))
+
+
+def prefilter_sigma(powers, operator: str = "sml") -> tuple[float, list[float]]:
+    """Gaussian pre-filter (σ, px) that keeps an operator off the noise-only frequencies.
+
+    ``powers``: :func:`band_powers` of several frames of a sweep. In each band and tile,
+    defocus moves the power between texture + noise (sharp) and noise alone (blurred); the
+    band's modulation is the ratio of its largest to its smallest power over the frames,
+    its upper quartile over the tiles (the textured parts of the field decide). A power
+    estimate fluctuates, so white noise alone shows some modulation too (the same
+    statistic over as many frames of simulated white noise, M_noise). The cut-off f_c is
+    the lower edge of the first band (from 0.1 cycles/px up) whose modulation is below
+    :data:`BAND_MODULATION_MIN` × M_noise: above it the sensor noise outweighs the
+    texture. A derivative operator of order d multiplies
+    the power at f by f^2d, so it listens mostly to the highest, noisiest frequencies; a
+    Gaussian of σ = √d / (2π f_c) puts the peak of f^2d·exp(−4π²σ²f²) at f_c. No
+    noise-only band, no informative band at all (a textureless field: blurring cannot
+    help) or an operator that is not a derivative (d = 0): σ = 0.
+    Returns (σ, the modulation per band).
+    """
+    stack = [p for p in powers if p is not None]
+    order = _DERIVATIVE_ORDER.get(_operator_name(operator), 0)
+    if len(stack) < 2:
+        return 0.0, []
+    if len(stack) > BAND_MAX_FRAMES:  # evenly spaced, as many as the calibration has
+        stack = [stack[i] for i in np.linspace(0, len(stack) - 1, BAND_MAX_FRAMES).round().astype(int)]
+    modulation = _modulation(np.asarray(stack))
+    # a power estimate fluctuates, so even pure noise has max/min > 1: compare with the
+    # same statistic on white noise seen in as many frames
+    noisy = np.nonzero(modulation[1:] < BAND_MODULATION_MIN * _noise_modulation(len(stack))[1:])[0]
+    table = [round(float(min(m, 1e6)), 2) for m in modulation]  # 1e6: "no noise at all"
+    if order == 0 or noisy.size == 0 or noisy[0] == 0:
+        return 0.0, table  # no noise-only band, or no texture at all: nothing to gain
+    f_c = float(BAND_EDGES[noisy[0]])  # the noisy band's lower edge
+    return math.sqrt(order) / (2 * math.pi * f_c), table
+
+
+def prefilter(gray: np.ndarray, sigma_px: float) -> np.ndarray:
+    """The grey frame smoothed by a Gaussian of ``sigma_px`` (itself when 0)."""
+    if sigma_px <= 0:
+        return gray
+    return cv2.GaussianBlur(gray, (0, 0), sigma_px, borderType=_BORDER)
+
+
+@lru_cache(maxsize=256)
+def noise_focus_spread(operator: str, window_px: int, threshold: float = 0.0,
+                       prefilter_px: float = 0.0) -> float:
+    """Relative spread (std / mean) of the focus measure of white noise, after the
+    Gaussian pre-filter of ``prefilter_px``. Without one it falls as 1/window_px (the
+    window sums window_px² independent responses); a pre-filter correlates neighbouring
+    responses, so fewer independent ones are summed and a noise-only curve can fake a
+    larger peak-to-floor ratio (the confidence's noise test scales with it)."""
+    rng = np.random.default_rng(1)
+    g = prefilter((128.0 + rng.standard_normal((192, 192))).astype(np.float32), prefilter_px)
+    f = focus_measure(g, operator=operator, window_px=window_px, threshold=threshold)
+    m = window_px // 2 + 8
+    f = f[m:-m, m:-m].astype(np.float64)
+    return float(f.std() / f.mean()) if f.mean() > 0 else 0.0
+
+
+@lru_cache(maxsize=256)
+def noise_focus(operator: str, window_px: int, threshold: float = 0.0,
+                prefilter_px: float = 0.0) -> float:
+    """Median focus measure of white noise of σ = 1 (grey levels) around a mid grey
+    (after the Gaussian pre-filter of ``prefilter_px``, if any).
 
     An energy operator's noise response scales as σ², an amplitude one's as σ
     (``FocusOperator.curve_power``); with a threshold the scaling is only approximate.
     """
     rng = np.random.default_rng(0)
-    g = (128.0 + rng.standard_normal((96, 96))).astype(np.float32)
+    g = prefilter((128.0 + rng.standard_normal((96, 96))).astype(np.float32), prefilter_px)
     f = focus_measure(g, operator=operator, window_px=window_px, threshold=threshold)
     m = window_px // 2 + 4
     return float(np.median(f[m:-m, m:-m]))

@@ -18,7 +18,8 @@ from ._config import FitMethod, FocusConfig
 from ._confidence import (blur_px_per_frame, confidence_cues, confidence_map,
                           defocus_halo_mask, depth_edge_mask, unsupported_mask)
 from ._depth import PeakTracker, centroid_correction, fit_peaks
-from ._focus import FocusOperator, focus_measure, focus_measure_moments, noise_focus
+from ._focus import (FocusOperator, band_powers, focus_measure, focus_measure_moments,
+                     noise_focus, noise_focus_spread, prefilter, prefilter_sigma)
 from ._surface import Surface
 
 __all__ = ["reconstruct", "to_gray"]
@@ -33,6 +34,9 @@ MEAN_GREY = 128.0
 MAGNIFICATION_TREND_WARN = 0.01
 #: Decoded frames the alignment pre-pass may keep for the main pass (bytes).
 FRAME_CACHE_BYTES = 256 * 2**20
+#: Frames (evenly spaced) read before the main pass to choose the "auto" pre-filter
+#: when there is no alignment pre-pass (kept in the frame cache).
+PREFILTER_SAMPLE_FRAMES = 9
 
 
 def to_gray(image: np.ndarray) -> np.ndarray:
@@ -84,18 +88,24 @@ def reconstruct(
     # frames decoded (and made grey) by the alignment pre-pass, kept (up to
     # FRAME_CACHE_BYTES) for the main pass instead of being decoded twice
     cache: dict[int, tuple[np.ndarray, np.ndarray]] = {}
+    # power spectra of tiles of the frames read before the main pass (for prefilter "auto")
+    powers: dict[int, np.ndarray | None] = {}
+    auto = config.prefilter_px == "auto"
     pool = ThreadPoolExecutor(max_workers=config.workers, thread_name_prefix="sff")
+    cached = [0]
+
+    def read(i: int) -> np.ndarray:
+        image = stack.read_frame(i)
+        gray = to_gray(image)
+        if auto:
+            mean = float(gray.mean())
+            powers[i] = band_powers(gray * np.float32(MEAN_GREY / mean) if mean > 0 else gray)
+        if cached[0] + image.nbytes + gray.nbytes <= FRAME_CACHE_BYTES:
+            cache[i] = image, gray
+            cached[0] += image.nbytes + gray.nbytes
+        return gray
+
     if config.align:
-        cached = [0]
-
-        def read(i: int) -> np.ndarray:
-            image = stack.read_frame(i)
-            gray = to_gray(image)
-            if cached[0] + image.nbytes + gray.nbytes <= FRAME_CACHE_BYTES:
-                cache[i] = image, gray
-                cached[0] += image.nbytes + gray.nbytes
-            return gray
-
         reads = _prefetch(read, n, pool, depth=config.workers + 1)
         try:
             alignment = estimate_alignment(reads, n)
@@ -111,6 +121,21 @@ def reconstruct(
                 "moves the camera this means z runs the wrong way (check the sign of "
                 "--step-mm or the stack's z_mm: every height would be flipped); on a rig "
                 "that focuses with the lens it is expected", 100 * trend)
+    elif auto:
+        sample = np.unique(np.linspace(0, n - 1, min(n, PREFILTER_SAMPLE_FRAMES)).round())
+        try:
+            list(pool.map(read, sample.astype(int).tolist()))
+        except BaseException:
+            pool.shutdown(cancel_futures=True)
+            raise
+    if auto:
+        sigma, modulation = prefilter_sigma([powers[i] for i in sorted(powers)], config.operator)
+        # ±3σ within the window: the pre-filter must not widen the footprint the halo,
+        # edge and support checks are sized for
+        sigma = min(sigma, config.window_px / 6.0)
+        log.info("focus pre-filter σ %.2f px (band modulation %s)", sigma, modulation)
+    else:
+        sigma, modulation = float(config.prefilter_px), None
     first = stack.frames[0].path
     operator = FocusOperator(config.operator)
     moments_wanted = (config.centroid_correction and operator.uses_threshold
@@ -127,6 +152,9 @@ def reconstruct(
         norm = MEAN_GREY / mean if mean > 0 else 1.0
         if mean > 0:
             gray = gray * np.float32(norm)
+        # σ is in reference pixels; frame i's pixels are larger by 1/scale
+        sigma_i = round(sigma * (alignment.scale(i) if alignment is not None else 1.0), 3)
+        gray = prefilter(gray, sigma_i)
         if moments_wanted:
             focus, mx, my = focus_measure_moments(gray, operator=config.operator,
                                                   window_px=config.window_px,
@@ -139,14 +167,20 @@ def reconstruct(
             if image.shape[:2] != alignment.shape:
                 raise _mismatch(stack.frames[i].path, image.shape, first, alignment.shape)
             gain = alignment.scale(i) ** operator.magnification_exponent
-            if gain != 1.0:
+            if gain != 1.0 or sigma_i != sigma:
                 # The same texture seen less magnified has steeper derivatives: scale the
                 # scene's part of the focus, not the sensor noise's (which is per pixel).
-                noise = noise_focus(operator.value, config.window_px, config.threshold) \
-                    * (alignment.noise_sigma * norm) ** operator.curve_power
-                focus -= np.float32(noise)
+                # The noise part becomes the reference frame's: with a pre-filter (in
+                # reference pixels) a frame's own noise floor differs, and a floor that
+                # changes over the sweep pulls every peak towards its higher end.
+                level = (alignment.noise_sigma * norm) ** operator.curve_power
+                own = noise_focus(operator.value, config.window_px, config.threshold,
+                                  sigma_i) * level
+                ref = noise_focus(operator.value, config.window_px, config.threshold,
+                                  round(sigma, 3)) * level
+                focus -= np.float32(own)
                 focus *= np.float32(gain)
-                focus += np.float32(noise)
+                focus += np.float32(ref)
                 if mx is not None:  # the noise's centroid is the window centre
                     mx *= np.float32(gain)
                     my *= np.float32(gain)
@@ -195,8 +229,15 @@ def reconstruct(
                 progress(i + 1, n)
     t_stream = time.perf_counter() - t0
 
+    # a pre-filtered noise is correlated: the noise test must ask for a larger peak
+    noise_gain = 1.0
+    if sigma > 0:
+        noise_gain = max(1.0, noise_focus_spread(operator.value, config.window_px, config.threshold,
+                                                 round(sigma, 3))
+                         / noise_focus_spread(operator.value, config.window_px, config.threshold))
     fit, confidence, halo, beyond = _level(tracker, z_mm, config, window_px=config.window_px,
-                                   halo_radius_px=config.window_px + 2)
+                                           halo_radius_px=config.window_px + 2,
+                                           noise_gain=noise_gain)
     meta: dict = {}
     field = np.ones(tracker.shape, bool)
     if alignment is not None:
@@ -212,7 +253,7 @@ def reconstruct(
     from_coarse = None
     if coarse is not None:
         height, confidence, from_coarse = coarse.merge(height, confidence, halo, field,
-                                                       z_mm, config)
+                                                       z_mm, config, noise_gain=noise_gain)
         meta["coarse_fraction"] = round(float(from_coarse.mean()), 4)
     if config.edge_jump_steps > 0:
         jump = config.edge_jump_steps * stack.step_mm
@@ -244,6 +285,8 @@ def reconstruct(
         "step_mm": stack.step_mm,
         "z_range_mm": [float(z_mm[0]), float(z_mm[-1])],
         "config": config.to_dict(),
+        "prefilter": {"sigma_px": round(sigma, 3), "band_modulation": modulation,
+                      "noise_test_gain": round(noise_gain, 3)},
         "seconds": {"stream": round(t_stream, 4), "total": round(t_total, 4)},
         "mpixel_per_s": round(n * h * w / 1e6 / t_total, 2),
     })
@@ -281,7 +324,7 @@ def _prefetch(read: Callable[[int], np.ndarray], n: int, pool: ThreadPoolExecuto
 
 
 def _level(tracker: PeakTracker, z_mm: np.ndarray, config: FocusConfig, *, window_px: int,
-           halo_radius_px: int):
+           halo_radius_px: int, noise_gain: float = 1.0):
     """Fit one level's peaks and judge them: (fit, confidence, halo mask, beyond).
 
     ``beyond`` (int8) is −1 / +1 where the curve is sharpest on the first / last frame
@@ -291,7 +334,7 @@ def _level(tracker: PeakTracker, z_mm: np.ndarray, config: FocusConfig, *, windo
     tracker.finish()
     fit = fit_peaks(tracker, z_mm, method=config.fit, workers=config.workers,
                     power=FocusOperator(config.operator).curve_power)
-    cues = confidence_cues(fit, window_px=window_px)
+    cues = confidence_cues(fit, window_px=window_px, noise_spread_gain=noise_gain)
     confidence = confidence_map(fit, window_px=window_px, cues=cues)
     first, last = fit.best_idx == 0, fit.best_idx == len(z_mm) - 1
     halo = np.zeros(tracker.shape, bool)
@@ -335,12 +378,14 @@ class _CoarseLevel:
         return cv2.blur(small, (cls.BOX, cls.BOX), borderType=cv2.BORDER_REFLECT)
 
     def merge(self, height: np.ndarray, confidence: np.ndarray, halo: np.ndarray,
-              field: np.ndarray, z_mm: np.ndarray, config: FocusConfig):
+              field: np.ndarray, z_mm: np.ndarray, config: FocusConfig, *,
+              noise_gain: float = 1.0):
         """Fill the fine level's unreliable pixels inside ``field`` (except its ``halo``
         pixels) from reliable coarse ones; returns (height, confidence, from_coarse)."""
         # the noise test scales with the footprint; the halo radius is the footprint's
         fit, conf, _, _ = _level(self.tracker, z_mm, config, window_px=self.window_px,
-                              halo_radius_px=-(-(self.window_px + 2) // self.factor))
+                              halo_radius_px=-(-(self.window_px + 2) // self.factor),
+                              noise_gain=noise_gain)
         inside = cv2.resize(field.astype(np.float32), self.small[::-1],
                             interpolation=cv2.INTER_AREA) > 0.999
         ok = (conf >= config.min_confidence) & inside
