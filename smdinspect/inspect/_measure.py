@@ -23,12 +23,21 @@ Chip end joint
     the end cap's top (solder climbing over the termination means excess).
 Gull-wing heel joint
     The lead's foot hides most of the pad, and the heel fillet hides under the lead's
-    bend. Measured: the foot (the flat part of the lead, ``body_margin_mm`` away from
-    the knee) as the ``height_percentile`` percentile (``foot``) and its toe half as the
-    median (``lead_mm``: the lead's own height); the *side region*: the pad beside the
-    foot and beyond the toe (minus the lead grown by one pixel; the knee rises to the
-    mould's exit and its blur would read as solder). When solder climbs more than
-    20 µm above the lead's nominal top, the foot value is the joint's max height.
+    bend. Measured: the foot (the flat part of the lead, from the heel to a pixel short
+    of the toe) as the ``height_percentile`` percentile (``foot``) and its toe half as
+    the median (``lead_mm``: the lead's own height); the *side region*: the pad beside
+    the foot and beyond the toe (minus the lead grown by one pixel; the knee rises to
+    the mould's exit and its blur would read as solder). The solder on the foot is
+    fitted as a meniscus thinning from the heel along the foot onto the lead's top,
+    ``z = lead + A·(1 − x/ℓ)²`` (x from the heel, reach ℓ searched, a redescending
+    clipped least-squares fit over all the foot's reliable pixels, see
+    :func:`_heel_fillet`): ``lead + A`` is the heel fillet's top. Fitted over hundreds of
+    pixels it varies between re-placed sweeps 40 % less than the percentile, which
+    rests on the highest few (next to the knee's blurred edge, where reliable pixels
+    come and go), and reads closer to the truth (simulated demo boards, 20 µm/px: σ 7.6
+    → 4.6 µm, bias −8.5 → −3.5 µm); the percentile stands in when fewer than
+    :data:`HEEL_FIT_MIN_PIXELS` foot pixels are reliable. When that solder climbs more than 20 µm above the lead's
+    nominal top, it is the joint's max height (``max_method`` "foot").
     Otherwise it is estimated from the side fillets: the side region's percentile
     divided by ``side_fillet_ratio``. This is a calibration, not a model: the strip
     beside a lead (0.09 mm on an SOIC pad) is narrower than the focus window, and
@@ -64,6 +73,7 @@ Uncertainty
     focus step. Meniscus F: the fit's standard error combined with
     ``√Σ(g²u²)/Σg²`` (g the model's shape) and the local level's uncertainty.
     Percentile max: median ``u`` of the pixels at or above the percentile ⊕ level.
+    Heel fillet: the fit's standard error ⊕ ``√Σ(g²u²)/Σg²`` ⊕ the lead level's ⊕ level.
     Mean: ``√Σu²/n`` ⊕ level. Volume: ``p²·√Σu²`` ⊕ level × area. Area: the area of
     the pixels within ``u`` of the coverage threshold.
 Component (body)
@@ -581,6 +591,80 @@ def _measure_chip(comp, joint, win: _Win, config: InspectConfig, level: float,
     return m
 
 
+#: Heel fillet fit: fewest reliable foot pixels it is fitted to (else the percentile).
+HEEL_FIT_MIN_PIXELS = 20
+
+
+def _heel_fit(x: np.ndarray, y: np.ndarray, clip2: float, foot_length_mm: float,
+              p: float):
+    """Best (loss, reach, A, g, keep) of ``y = A·(1 − x/ℓ)²`` over the reach grid."""
+    best = None
+    for reach in np.arange(2 * p, foot_length_mm + 1e-9, p / 2):
+        g = np.clip(1.0 - x / reach, 0.0, None) ** 2
+        inside = g > 0
+        if inside.sum() < 5:
+            continue
+        keep = inside.copy()
+        A = NAN
+        for _ in range(4):
+            den = float(np.sum(g[keep] ** 2))
+            if keep.sum() < 5 or den <= 1e-12:
+                break
+            A = float(np.sum(g[keep] * y[keep]) / den)
+            r = y - A * g
+            new = inside & (r * r <= clip2)
+            if np.array_equal(new, keep):
+                break
+            keep = new
+        if not np.isfinite(A):
+            continue
+        r = y - A * g
+        loss = float(np.sum(np.minimum(r * r, clip2)))
+        if best is None or loss < best[0]:
+            best = (loss, float(reach), A, g, keep)
+    return best
+
+
+def _heel_fillet(x: np.ndarray, z: np.ndarray, uz: np.ndarray, lead_mm: float, *,
+                 foot_length_mm: float, pixel_size_mm: float,
+                 info: dict | None = None) -> tuple[float, float]:
+    """Heel fillet height at the heel from the foot's reliable pixels (see module doc).
+
+    Model: the solder wets the lead up to ``lead_mm + A`` at the heel and thins along
+    the foot as a concave meniscus, ``z = lead + A·(1 − x/ℓ)²`` for ``x < ℓ``, the
+    lead's own top beyond (x: distance from the heel along the foot, mm). For every
+    reach ℓ on a grid (half-pixel steps from 2 pixels to the foot's length) A is the
+    least-squares value over the pixels within ``c`` of the model, and the ℓ with the
+    smallest clipped loss ``Σ min(r², c²)`` wins (a redescending M-estimate: a stray
+    pixel costs at most c²). ``c = 4 s``: first s is the robust scatter of the foot's
+    far half about the lead top, then the robust scatter of the first fit's residuals.
+    Returns (lead + A, uncertainty: the fit's standard error combined with
+    ``√Σ(g²u²)/Σg²`` and the lead level's standard error); NaN when nothing fits.
+    """
+    x = np.asarray(x, np.float64)
+    y = np.asarray(z, np.float64) - lead_mm
+    p = float(pixel_size_mm)
+    flat = x >= 0.5 * foot_length_mm
+    ref = y[flat] if flat.sum() >= 3 else y
+    s0 = max(1.4826 * float(np.median(np.abs(ref - np.median(ref)))), 1e-4)
+    best = _heel_fit(x, y, (4.0 * s0) ** 2, foot_length_mm, p)
+    if best is None:
+        return NAN, NAN
+    r = y - best[2] * best[3]
+    s1 = max(1.4826 * float(np.median(np.abs(r))), s0)
+    best = _heel_fit(x, y, (4.0 * s1) ** 2, foot_length_mm, p) or best
+    _, reach, A, g, keep = best
+    gk, rk = g[keep], (y - A * g)[keep]
+    den = float(np.sum(gk * gk))
+    se = float(np.sqrt(np.sum(rk * rk) / max(keep.sum() - 1, 1) / den))
+    uk = np.asarray(uz, np.float64)[keep]
+    uf = float(np.sqrt(np.nansum(gk ** 2 * uk ** 2)) / den) if np.isfinite(uk).any() else NAN
+    u_lead = 1.2533 * s0 / math.sqrt(max(int(flat.sum()), 1))
+    if info is not None:
+        info.update(reach_mm=reach, n=int(keep.sum()))
+    return lead_mm + A, _hypot(se, uf, u_lead)
+
+
 def _measure_gullwing(comp, joint, win: _Win, config: InspectConfig, level: float,
                       u_level: float) -> JointMeasurement:
     p = win.ctx.p
@@ -639,8 +723,17 @@ def _measure_gullwing(comp, joint, win: _Win, config: InspectConfig, level: floa
     # beyond the toe is the lead itself raised, not solder on it: never a heel fillet.
     raised_lead = (np.isfinite(m.lead_mm) and m.lead_mm > g_t + 0.02
                    and np.isfinite(m.toe_mm) and m.toe_mm < m.lead_mm - float(lead["thickness_mm"]))
-    if np.isfinite(m.foot_mm) and m.foot_mm > g_t + 0.02 and not raised_lead:
-        m.max_mm, m.u_max_mm, m.max_method = m.foot_mm, _hypot(u_foot, u_level), "foot"
+    # The solder on the foot: its top at the heel from the meniscus fitted along the foot
+    # (hundreds of pixels), not the percentile (the highest few, next to the knee's
+    # blurred edge); the percentile when too few foot pixels are reliable.
+    on_foot, u_on_foot = m.foot_mm, u_foot
+    if fr.sum() >= HEEL_FIT_MIN_PIXELS and np.isfinite(m.lead_mm):
+        hf_mm, u_hf = _heel_fillet(u[fr] - heel, win.h[fr], win.u[fr], m.lead_mm,
+                                   foot_length_mm=toe - heel, pixel_size_mm=p)
+        if np.isfinite(hf_mm):
+            on_foot, u_on_foot = hf_mm, u_hf
+    if np.isfinite(on_foot) and on_foot > g_t + 0.02 and not raised_lead:
+        m.max_mm, m.u_max_mm, m.max_method = on_foot, _hypot(u_on_foot, u_level), "foot"
     elif np.isfinite(side_f):
         m.max_mm, m.u_max_mm, m.max_method = side_f, _hypot(side_u, u_level), "side"
     return m
