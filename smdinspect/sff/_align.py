@@ -38,6 +38,15 @@ log = logging.getLogger(__name__)
 _MAX_SIDE = 640  # ECC runs on an image no larger than this (pixels)
 #: A pair whose ECC correlation is below this is a failed registration.
 MIN_CORRELATION = 0.3
+#: Loop-closure check: the sweep is cut into this many spans, each registered directly,
+#: and a disagreement with the chain above CHECK_TOLERANCE_PX (full-size pixels, at the
+#: image's corners) marks the alignment inconsistent.
+CHECK_SPANS = 4
+CHECK_TOLERANCE_PX = 2.0
+#: ECC runs coarse to fine over up to this many pyramid levels, the coarsest no smaller
+#: than _ECC_MIN_SIDE pixels.
+_ECC_LEVELS = 3
+_ECC_MIN_SIDE = 64
 
 
 @dataclass(frozen=True, eq=False)
@@ -59,7 +68,15 @@ class Alignment:
         ECC correlation of each frame with its predecessor (1.0 for frame 0).
     failed : list of int
         Frames whose registration failed (ECC did not converge or correlated below
-        ``MIN_CORRELATION``); their warp reuses the previous step.
+        ``MIN_CORRELATION``) or whose step disagreed with the others' magnification
+        change; their step is the median of the good steps.
+    inconsistent : list of [i, j]
+        Spans of the sweep whose direct registration disagrees with the chain of steps
+        (loop closure, :func:`_check_chain`): the alignment is wrong there.
+    verified_spans : int
+        Spans whose direct registration converged (and so checked the chain).
+    checks : int
+        Spans checked (0 for a stack too short to cut into spans).
     noise_sigma : float
         Sensor noise σ in the frames' grey units: the median of the per-frame estimates
         (:func:`~smdinspect.sff.noise_sigma`). Texture inflates an estimate and
@@ -74,11 +91,23 @@ class Alignment:
     field: np.ndarray
     correlation: list[float] = _field(default_factory=list)
     failed: list[int] = _field(default_factory=list)
+    inconsistent: list[list[int]] = _field(default_factory=list)
+    verified_spans: int = 0
+    checks: int = 0
     noise_sigma: float = 0.0
 
     @property
     def ok(self) -> bool:
-        return not self.failed
+        return not self.failed and not self.inconsistent
+
+    @property
+    def trusted(self) -> bool:
+        """The chain agrees with every direct registration over a span of the sweep and
+        at least one of those converged (or the stack is too short to cut into spans and
+        no frame failed)."""
+        if self.inconsistent:
+            return False
+        return self.verified_spans > 0 or (self.checks == 0 and not self.failed)
 
     def scale(self, n: int) -> float:
         """Linear size of a reference pixel in frame n's pixels (≤ 1 by construction)."""
@@ -100,6 +129,9 @@ class Alignment:
             "ok": self.ok,
             "reference_frame": self.reference,
             "failed_frames": list(self.failed),
+            "inconsistent_spans": [list(p) for p in self.inconsistent],
+            "verified_spans": self.verified_spans,
+            "trusted": self.trusted,
             "min_correlation": round(min(self.correlation), 4) if self.correlation else None,
             "scale_range": [round(min(self.scale(n) for n in range(len(self.transforms))), 4),
                             round(max(self.scale(n) for n in range(len(self.transforms))), 4)],
@@ -131,7 +163,130 @@ def _small(gray: np.ndarray, scale: float) -> np.ndarray:
     return (g - g.mean()) / (g.std() + 1e-6)
 
 
+def _ecc_pyramid(prev: np.ndarray, cur: np.ndarray, init: np.ndarray, n: int):
+    """Affine ECC of ``cur`` onto ``prev`` (both :func:`_small`): at full size from
+    ``init``, and if that fails, coarse to fine.
+
+    ECC follows image gradients, so it only converges when the start is within about
+    half a texture period; fine texture and a magnification change of a few pixels at the
+    border defeat it from the identity. Halving the images widens that reach: each level
+    starts from the coarser one's warp (translation doubled); a level that fails (noise can
+    stop the finer ones) keeps the coarser warp. Returns (correlation, warp) of the finest
+    level that converged or of the full-size attempt, whichever correlates better;
+    correlation 0 and ``init`` when none converged.
+    """
+    criteria = (cv2.TERM_CRITERIA_EPS | cv2.TERM_CRITERIA_COUNT, 100, 1e-6)
+    try:  # at full size first: the texture the coarse levels blur away may be all there is
+        cc, warp = cv2.findTransformECC(prev, cur, init.astype(np.float32).copy(),
+                                        cv2.MOTION_AFFINE, criteria, None, 5)
+        if cc >= MIN_CORRELATION:
+            return float(cc), warp
+        single: tuple[float, np.ndarray] = (float(cc), warp)
+    except cv2.error:
+        single = (0.0, init)
+    levels = [(prev, cur)]
+    while min(levels[-1][0].shape) >= 2 * _ECC_MIN_SIDE and len(levels) < _ECC_LEVELS:
+        a, b = levels[-1]
+        levels.append((cv2.pyrDown(a), cv2.pyrDown(b)))
+    factor = 2.0 ** (len(levels) - 1)
+    warp = init.astype(np.float32).copy()
+    warp[:, 2] /= factor
+    best: tuple[float, np.ndarray] = (0.0, init)
+    for level, (a, b) in enumerate(reversed(levels)):
+        try:
+            cc, warp = cv2.findTransformECC(a, b, warp, cv2.MOTION_AFFINE, criteria, None, 5)
+            full = warp.copy()
+            full[:, 2] *= 2.0 ** (len(levels) - 1 - level)
+            best = (float(cc), full)  # the finest level that converged
+        except cv2.error as exc:
+            # keep the coarser level's warp (noise can stop the finer one)
+            log.debug("frame %d: ECC failed at level %d: %s", n, len(levels) - 1 - level,
+                      str(exc).splitlines()[-1])
+        if level < len(levels) - 1:
+            warp = warp.copy()
+            warp[:, 2] *= 2.0
+    return max(single, best, key=lambda r: r[0])
+
+
+def _check_chain(kept: dict[int, np.ndarray], to_frame: list[np.ndarray],
+                 scale: float) -> tuple[list[list[int]], int]:
+    """Loop closure: register frames a span apart directly (ECC started from the chain's
+    own answer) and compare. Each chained step may converge on noise or on shading that
+    stays with the sensor and still correlate; a direct registration over several steps
+    that converges elsewhere shows the chain is wrong. Returns the [i, j] pairs whose
+    direct and chained transforms move a point at the image's edge by more than
+    CHECK_TOLERANCE_PX apart, and how many pairs converged at all (those that did not
+    prove nothing either way)."""
+    frames = sorted(kept)
+    bad = []
+    verified = 0
+    s = np.diag([scale, scale, 1.0])
+    criteria = (cv2.TERM_CRITERIA_EPS | cv2.TERM_CRITERIA_COUNT, 100, 1e-6)
+    for i, j in zip(frames, frames[1:]):
+        a, b = kept[i], kept[j]
+        chain = s @ to_frame[j] @ np.linalg.inv(to_frame[i]) @ np.linalg.inv(s)  # small px
+        try:
+            cc, warp = cv2.findTransformECC(a, b, chain[:2].astype(np.float32), cv2.MOTION_AFFINE,
+                                            criteria, None, 5)
+        except cv2.error:
+            continue
+        if cc < MIN_CORRELATION:
+            continue
+        verified += 1
+        h, w = a.shape
+        corners = np.array([[0, 0, 1], [w - 1, 0, 1], [0, h - 1, 1], [w - 1, h - 1, 1]], float).T
+        moved = np.abs(warp.astype(float) @ corners - chain[:2] @ corners).max() / scale
+        if moved > CHECK_TOLERANCE_PX:
+            bad.append([i, j])
+            log.warning("alignment: frames %d and %d registered directly disagree with the "
+                        "chain of steps between them by %.1f px at the image edge", i, j, moved)
+    return bad, verified
+
+
+def _replace_outlier_steps(steps: list[np.ndarray], failed: list[int],
+                           z_mm: np.ndarray | None) -> None:
+    """Failed steps, and steps whose magnification change disagrees with the others,
+    become the median of the good steps (in place; ``failed`` gains the outliers).
+
+    A lens's magnification changes smoothly with focus, by about the same factor per
+    unit of z; ECC on a frame that is mostly blur and noise can converge to a wrong
+    scale with a passable correlation, and each wrong step shifts every later frame.
+    The per-step log-scale, per mm of z when ``z_mm`` is given, is an outlier when it is
+    more than 6 MADs (and 0.2 %) from the median of the converged steps.
+    """
+    n = len(steps)
+    if n < 4:
+        return
+    dz = np.abs(np.diff(np.asarray(z_mm, float))) if z_mm is not None else np.ones(n - 1)
+    dz = np.where(dz > 0, dz, np.median(dz[dz > 0]) if np.any(dz > 0) else 1.0)
+    rate = np.array([0.5 * np.log(abs(np.linalg.det(a[:2, :2]))) for a in steps[1:]]) / dz
+    good = np.array([i not in failed for i in range(1, n)])
+    if good.sum() < 3:
+        return
+    med = float(np.median(rate[good]))
+    mad = 1.4826 * float(np.median(np.abs(rate[good] - med)))
+    tol = max(6 * mad, 0.002 / float(np.median(dz)))
+    bad = ~good | (np.abs(rate - med) > tol)
+    keep = [steps[i + 1] for i in np.nonzero(~bad)[0]]
+    if not keep:
+        return
+    typical = np.median(np.stack(keep), axis=0)
+    for i in np.nonzero(bad)[0]:
+        scale = float(np.exp(med * (dz[i] - np.median(dz))))  # a longer step, more change
+        step = typical.copy()
+        step[:2, :2] *= scale
+        steps[i + 1] = step
+        i = int(i)
+        if i + 1 not in failed:
+            log.warning("frame %d: alignment step to frame %d disagrees with the others' "
+                        "magnification change (%.2f %% against %.2f %% per mm); replaced by "
+                        "their median", i + 1, i, 100 * rate[i], 100 * med)
+            failed.append(i + 1)
+    failed.sort()
+
+
 def estimate_alignment(read_gray: Callable[[int], np.ndarray], n_frames: int, *,
+                       z_mm: np.ndarray | None = None,
                        progress: Callable[[int, int], None] | None = None) -> Alignment:
     """Register every frame to its neighbour and choose the reference grid.
 
@@ -140,6 +295,8 @@ def estimate_alignment(read_gray: Callable[[int], np.ndarray], n_frames: int, *,
     read_gray : callable(index) -> (H, W) array
         Returns frame ``index``'s grey image at full size.
     n_frames : int
+    z_mm : array, optional
+        The frames' z (for the outlier test of the steps' magnification change).
 
     Returns
     -------
@@ -152,6 +309,10 @@ def estimate_alignment(read_gray: Callable[[int], np.ndarray], n_frames: int, *,
     prev = None
     last = np.eye(3, dtype=np.float32)[:2]
     shape = None
+    # frames kept (small) for the loop-closure check of the chain
+    span = max(2, n_frames // CHECK_SPANS)
+    check_frames = set(range(0, n_frames, span)) if n_frames >= 2 * span else set()
+    kept: dict[int, np.ndarray] = {}
     for n in range(n_frames):
         gray = read_gray(n)
         if shape is None:
@@ -159,19 +320,14 @@ def estimate_alignment(read_gray: Callable[[int], np.ndarray], n_frames: int, *,
             scale = min(1.0, _MAX_SIDE / max(shape))
         sigmas.append(noise_sigma(gray))
         small = _small(gray, scale)
+        if n in check_frames:
+            kept[n] = small
         if prev is not None:
-            warp = last.copy()
-            criteria = (cv2.TERM_CRITERIA_EPS | cv2.TERM_CRITERIA_COUNT, 100, 1e-6)
-            try:
-                cc, warp = cv2.findTransformECC(prev, small, warp, cv2.MOTION_AFFINE,
-                                                criteria, None, 5)
-            except cv2.error as exc:
-                cc, warp = 0.0, last
-                log.debug("frame %d: ECC failed: %s", n, str(exc).splitlines()[-1])
+            cc, warp = _ecc_pyramid(prev, small, last, n)
             if cc < MIN_CORRELATION:
                 failed.append(n)
                 log.warning("frame %d: alignment to frame %d failed (correlation %.2f); "
-                            "reusing the previous step", n, n - 1, cc)
+                            "using the other steps' median", n, n - 1, cc)
                 warp = last
             last = warp
             correlation.append(float(cc))
@@ -180,16 +336,20 @@ def estimate_alignment(read_gray: Callable[[int], np.ndarray], n_frames: int, *,
         prev = small
         if progress is not None:
             progress(n + 1, n_frames)
+    _replace_outlier_steps(steps, failed, z_mm)
     # chain: frame 0 coords -> frame n coords
     to_frame = [steps[0]]
     for st in steps[1:]:
         to_frame.append(st @ to_frame[-1])
+    inconsistent, verified = _check_chain(kept, to_frame, scale)
     scales = [np.sqrt(abs(np.linalg.det(a[:2, :2]))) for a in to_frame]
     ref = int(np.argmax(scales))  # the frame in which one frame-0 pixel is largest
     inv_ref = np.linalg.inv(to_frame[ref])
     transforms = [a @ inv_ref for a in to_frame]
     return Alignment(transforms=transforms, reference=ref, shape=shape,
                      field=_field(transforms, shape), correlation=correlation, failed=failed,
+                     inconsistent=inconsistent, verified_spans=verified,
+                     checks=max(0, len(kept) - 1),
                      noise_sigma=float(np.median(sigmas)) if sigmas else 0.0)
 
 

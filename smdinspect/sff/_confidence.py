@@ -96,7 +96,11 @@ def confidence_cues(fit: PeakFit, *, window_px: int = 9,
     window from A/b = 1.2 (0) to 2.2 (1); a 5-px window needs 1.8× more.
     ``noise_spread_gain`` (≥ 1 with a noise pre-filter: its correlated noise sums fewer
     independent responses, :func:`~smdinspect.sff._focus.noise_focus_spread`) divides
-    the ratio's excess over 1 alike.
+    the ratio alike. With alignment the ratio is in the units of the reference (the
+    most magnified) frame, where the magnification correction scales the scene's focus
+    down and leaves the noise's: the strictest frame's units. (Judging each peak in its
+    own frame's units instead let wrong heights through wherever a noise-dominated sweep
+    had been registered wrongly but consistently.)
     """
     r = np.nan_to_num(fit.reliability_db, nan=0.0)
     c_r = _ramp(r, R_LOW_DB, R_HIGH_DB)
@@ -110,7 +114,7 @@ def confidence_cues(fit: PeakFit, *, window_px: int = 9,
     with np.errstate(divide="ignore", invalid="ignore"):
         snr = np.nan_to_num(fit.f_best / fit.floor, nan=0.0, posinf=1e6) * (window_px / 9.0)
     if noise_spread_gain != 1.0:
-        snr = 1.0 + (snr - 1.0) / np.float32(noise_spread_gain)
+        snr = snr / np.float32(noise_spread_gain)
     return {"reliability": c_r, "width": c_w,
             "ambiguity": _ramp(fit.ambiguity, AMBIG_BAD, AMBIG_OK),
             "second_mode": _ramp(fit.second_mode, SECOND_BAD, SECOND_OK),

@@ -108,7 +108,7 @@ def reconstruct(
     if config.align:
         reads = _prefetch(read, n, pool, depth=config.workers + 1)
         try:
-            alignment = estimate_alignment(reads, n)
+            alignment = estimate_alignment(reads, n, z_mm=z_mm)
         except BaseException:
             pool.shutdown(cancel_futures=True)
             raise
@@ -255,6 +255,25 @@ def reconstruct(
         height, confidence, from_coarse = coarse.merge(height, confidence, halo, field,
                                                        z_mm, config, noise_gain=noise_gain)
         meta["coarse_fraction"] = round(float(from_coarse.mean()), 4)
+    if alignment is not None and not alignment.trusted:
+        # a wrong registration puts a frame's focus on the wrong pixels: a height is only
+        # as good as the alignment of the frames around its peak
+        if alignment.checks and not alignment.verified_spans:
+            log.warning("the frames' alignment could not be verified (no span of the sweep "
+                        "registered directly): every height is marked unreliable")
+            confidence[:] = 0.0
+            beyond[:] = 0
+        else:
+            pos = np.interp(height, z_mm, np.arange(n, dtype=np.float64))
+            k = config.fit_half_width
+            bad = np.zeros(height.shape, bool)
+            for i, j in alignment.inconsistent:
+                bad |= (pos >= i - k) & (pos <= j + k)
+            log.warning("the frames' alignment disagrees with direct registrations over "
+                        "frames %s: the %.1f %% of heights that peak there are marked "
+                        "unreliable", ", ".join(f"{i}-{j}" for i, j in alignment.inconsistent),
+                        100 * (bad & (confidence >= config.min_confidence)).mean())
+            confidence[bad] = 0.0
     if config.edge_jump_steps > 0:
         jump = config.edge_jump_steps * stack.step_mm
         edges = depth_edge_mask(height, confidence >= config.min_confidence, jump_mm=jump,
