@@ -31,6 +31,9 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--out", required=True, type=Path, help="stack directory to write")
     p.add_argument("--force", action="store_true", help="overwrite a stack already in OUT")
     p.add_argument("--seed", type=int, default=0, help="random seed (default 0)")
+    p.add_argument("--noise-seed", type=int, default=None, metavar="N",
+                   help="seed of the sensor noise alone (default: --seed); the same --seed with "
+                        "another --noise-seed is the same scene swept again")
     p.add_argument("--size", type=int, default=None, metavar="PX",
                    help="image side in pixels (default 256; boards: fit the board)")
     p.add_argument("--frames", type=int, default=None, metavar="N",
@@ -77,6 +80,8 @@ def run(args: argparse.Namespace) -> int:
         raise InputError(f"--out {out} is not empty; pass --force to overwrite it")
     if args.seed < 0:
         raise InputError(f"--seed must be >= 0; got {args.seed}")
+    if args.noise_seed is not None and args.noise_seed < 0:
+        raise InputError(f"--noise-seed must be >= 0; got {args.noise_seed}")
     _positive(args.step_mm, "--step-mm")
     _positive(args.pixel_size_mm, "--pixel-size-mm")
     if args.size is not None and args.size < 16:
@@ -101,7 +106,8 @@ def run(args: argparse.Namespace) -> int:
         extra = {"labels": "labels.json"}
     log.info("rendering %s: %dx%d px, %d frames, z %.3f..%.3f mm", scene.name,
              scene.shape[1], scene.shape[0], len(z), z.min(), z.max())
-    stack = render_stack(scene, z, optics=optics, sensor=sensor, seed=args.seed, out=out,
+    noise_seed = args.seed if args.noise_seed is None else args.noise_seed
+    stack = render_stack(scene, z, optics=optics, sensor=sensor, seed=noise_seed, out=out,
                          progress=progress_callback(args, f"simulate {args.scene}"),
                          overwrite=args.force, truth_extra=extra)
     if labels is not None:

@@ -110,3 +110,15 @@ def test_simulate_board_rejects_unknown_joint(tmp_path, capsys):
     assert rc == 2
     assert "Q9.1" in capsys.readouterr().err
     assert not (tmp_path / "b").exists()
+
+
+def test_noise_seed_sweeps_the_same_scene_again(tmp_path):
+    args = ["-q", "simulate", "plane", "--size", "48", "--seed", "4", "--frames", "5"]
+    for name, extra in (("a", []), ("b", ["--noise-seed", "9"]), ("c", ["--noise-seed", "4"])):
+        assert main(args + ["--out", str(tmp_path / name)] + extra) == 0
+    frames = {n: FocalStack.open(tmp_path / n).read_frame(2).astype(int) for n in "abc"}
+    truth = {n: np.load(tmp_path / n / "truth" / "height_mm.npy") for n in "abc"}
+    assert np.array_equal(truth["a"], truth["b"])  # the same scene ...
+    assert not np.array_equal(frames["a"], frames["b"])  # ... other sensor noise
+    assert np.array_equal(frames["a"], frames["c"])  # --noise-seed defaults to --seed
+    assert main(args + ["--out", str(tmp_path / "d"), "--noise-seed", "-1"]) == 2
