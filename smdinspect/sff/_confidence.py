@@ -173,46 +173,89 @@ def halo_mask(amplitude: np.ndarray, frame_pos: np.ndarray, candidate: np.ndarra
     candidate : (H, W) bool
         Pixels that may explain others' peaks (those with a trustworthy own peak).
     """
-    import cv2
+    return _HaloGroups(amplitude, frame_pos, candidate).mask(
+        radius_px=radius_px, min_frames=min_frames, ratio=ratio).reshape(amplitude.shape)
 
-    h, w = amplitude.shape
-    s = max(1, radius_px // 4)
-    hs, ws = -(-h // s), -(-w // s)
-    rs = max(1, radius_px // s)  # max-pooling into cells adds up to s - 1 px of reach
-    disk = cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (2 * rs + 1, 2 * rs + 1))
-    bins = np.clip(np.round(frame_pos), 0, None).astype(np.int32)
-    bins[~np.isfinite(frame_pos)] = 0
-    nb = int(bins.max()) + 1
-    gap = max(1, int(np.ceil(min_frames)))
-    strong = np.where(candidate, amplitude, 0).astype(np.float32).ravel()
-    # pixels grouped by bin, and the reduced-grid cell of each pixel
-    order = np.argsort(bins.ravel(), kind="stable")
-    starts = np.searchsorted(bins.ravel()[order], np.arange(nb + 1))
-    members = [order[starts[b]:starts[b + 1]] for b in range(nb)]
-    cell = ((np.arange(h) // s)[:, None] * ws + (np.arange(w) // s)[None, :]).ravel()
-    has_candidate = [bool(strong[m].any()) for m in members]
 
-    def spread(b: int) -> np.ndarray:
-        """Bin b's candidate amplitudes, max-pooled to cells and dilated by the radius."""
-        pooled = np.zeros(hs * ws, np.float32)
-        np.maximum.at(pooled, cell[members[b]], strong[members[b]])
-        return cv2.dilate(pooled.reshape(hs, ws), disk).ravel()
+class _HaloGroups:
+    """The pixels of :func:`halo_mask` sorted by peak frame bin, shared by every reach.
 
-    dom = np.zeros(h * w, np.float32)
-    # one pass upwards (neighbours >= gap bins lower), one downwards; memory: gap arrays
-    for bins_in_order in (range(nb), range(nb - 1, -1, -1)):
-        running = np.zeros(hs * ws, np.float32)
-        pending: list[np.ndarray | None] = []
-        for b in bins_in_order:
-            pending.append(spread(b) if has_candidate[b] else None)
-            if len(pending) > gap:
-                done = pending.pop(0)
-                if done is not None:
-                    np.maximum(running, done, out=running)
-            m = members[b]
-            if m.size:
-                dom[m] = np.maximum(dom[m], running[cell[m]])
-    return dom.reshape(h, w) > ratio * amplitude
+    The sort is by a 8- or 16-bit key (numpy's stable sort is then a radix sort), and
+    each bin's pixels are then a contiguous slice, so the per-bin look-ups of the
+    dilated cell maps walk memory in order; only the candidates carrying a nonzero
+    amplitude are pooled into cells.
+    """
+
+    def __init__(self, amplitude: np.ndarray, frame_pos: np.ndarray,
+                 candidate: np.ndarray) -> None:
+        h, w = amplitude.shape
+        self.shape = (h, w)
+        bins = np.clip(np.round(frame_pos), 0, None).astype(np.int32)
+        bins[~np.isfinite(frame_pos)] = 0
+        flat = bins.ravel()
+        self.nb = nb = int(flat.max()) + 1
+        key = flat.astype(np.uint8 if nb <= 256 else np.int16) if nb <= 32767 else flat
+        index = np.int32 if h * w < 2**31 else np.intp
+        self.order = order = np.argsort(key, kind="stable").astype(index, copy=False)
+        self.starts = np.concatenate([[0], np.cumsum(np.bincount(flat, minlength=nb))])
+        self.amp = np.asarray(amplitude).ravel()[order]
+        strong = np.where(candidate.ravel()[order], self.amp, 0).astype(np.float32)
+        self.rows, self.cols = np.divmod(order, index(w))
+        # pooling a zero changes nothing: only the nonzero candidates join the cells
+        pos = np.flatnonzero(strong)
+        self.strong = strong[pos]
+        self.cand_rows, self.cand_cols = self.rows[pos], self.cols[pos]
+        self.cand_starts = np.searchsorted(pos, self.starts)
+
+    def mask(self, *, radius_px: int, min_frames: float, ratio: float) -> np.ndarray:
+        """Flat (H·W,) bool halo mask for one reach (see :func:`halo_mask`)."""
+        return self.unsort(self.mask_sorted(radius_px=radius_px, min_frames=min_frames,
+                                            ratio=ratio))
+
+    def unsort(self, flags_sorted: np.ndarray) -> np.ndarray:
+        """Flat (H·W,) array of per-pixel flags given in bin order."""
+        out = np.empty(flags_sorted.size, bool)
+        out[self.order] = flags_sorted
+        return out
+
+    def mask_sorted(self, *, radius_px: int, min_frames: float, ratio: float) -> np.ndarray:
+        """The halo mask in the pixels' bin order."""
+        import cv2
+
+        h, w = self.shape
+        s = max(1, radius_px // 4)
+        hs, ws = -(-h // s), -(-w // s)
+        rs = max(1, radius_px // s)  # max-pooling into cells adds up to s - 1 px of reach
+        disk = cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (2 * rs + 1, 2 * rs + 1))
+        nb, starts, cs = self.nb, self.starts, self.cand_starts
+        gap = max(1, int(np.ceil(min_frames)))
+        cells = self.rows // s
+        cells *= ws
+        cells += self.cols // s
+        cand_cells = (self.cand_rows // s) * ws + self.cand_cols // s
+
+        def spread(b: int) -> np.ndarray:
+            """Bin b's candidate amplitudes, max-pooled to cells and dilated by the radius."""
+            pooled = np.zeros(hs * ws, np.float32)
+            np.maximum.at(pooled, cand_cells[cs[b]:cs[b + 1]], self.strong[cs[b]:cs[b + 1]])
+            return cv2.dilate(pooled.reshape(hs, ws), disk).ravel()
+
+        dom = np.zeros(h * w, np.float32)
+        # one pass upwards (neighbours >= gap bins lower), one downwards; memory: gap arrays
+        for bins_in_order in (range(nb), range(nb - 1, -1, -1)):
+            running = None
+            pending: list[np.ndarray | None] = []
+            for b in bins_in_order:
+                pending.append(spread(b) if cs[b + 1] > cs[b] else None)
+                if len(pending) > gap:
+                    done = pending.pop(0)
+                    if done is not None:
+                        running = done if running is None else np.maximum(running, done,
+                                                                          out=running)
+                if running is not None and starts[b + 1] > starts[b]:
+                    m = dom[starts[b]:starts[b + 1]]
+                    np.maximum(m, running[cells[starts[b]:starts[b + 1]]], out=m)
+        return dom > ratio * self.amp
 
 
 #: In-focus blur (σ, px) assumed for the sharpest edges of a stack: optics matched to
@@ -275,13 +318,19 @@ def defocus_halo_mask(amplitude: np.ndarray, frame_pos: np.ndarray, candidate: n
         gaps.append(a)
         a, b = b, a + b
     last_radius = -1
+    groups = None
     for g in gaps:
         radius = int(min(cap, max(base_radius_px, round(2 * blur_px_per_frame * g))))
         if radius == last_radius and g != gaps[0]:
             continue  # same reach, a larger gap: implied by the smaller gap's test
-        out |= halo_mask(amplitude, frame_pos, candidate, radius_px=radius, min_frames=g,
-                         ratio=ratio * (g / 2) ** power)
+        if groups is None:
+            groups = _HaloGroups(amplitude, frame_pos, candidate)
+            flagged = np.zeros(h * w, bool)
+        flagged |= groups.mask_sorted(radius_px=radius, min_frames=g,
+                                      ratio=ratio * (g / 2) ** power)
         last_radius = radius
+    if groups is not None:
+        out = groups.unsort(flagged).reshape(h, w)
     return out
 
 

@@ -72,8 +72,7 @@ class PeakTracker:
         self._far = np.empty(shape, bool)
         self._frame_no = np.empty(shape, np.int16)
         self._scratch = np.empty(shape, np.float32)
-        self._zeros = np.zeros(shape, np.float32)
-        self._nans = np.full(shape, np.nan, np.float32)
+        self._finished = False
         #: Σ Mx, Σ My and Σ F over the frames, when update() was given moments
         self.moments: tuple[np.ndarray, np.ndarray, np.ndarray] | None = None
 
@@ -102,7 +101,8 @@ class PeakTracker:
         far = np.less(self.best_idx, n - k, out=self._far)
         np.multiply(focus, far, out=self._scratch)
         np.maximum(self.after, self._scratch, out=self.after)
-        cv2.copyTo(self._zeros, mask, self.after)
+        # zero where masked (x ^ x): no constant plane of zeros to keep
+        cv2.bitwise_xor(self.after, self.after, dst=self.after, mask=mask)
         leaving = self.ring[n % size]  # frame n - 2k - 1
         if leaving is not None:
             np.maximum(self.lagmax, leaving, out=self.lagmax)
@@ -124,14 +124,31 @@ class PeakTracker:
         cv2.copyTo(before, mask, self.before)
         for j in range(size):
             frame = m - k + j
-            src = self.ring[frame % size] if 0 <= frame <= upto else self._nans
-            cv2.copyTo(src, mask, self.window[j])
+            if 0 <= frame <= upto:
+                cv2.copyTo(self.ring[frame % size], mask, self.window[j])
+            else:  # outside the stack: NaN (x + NaN), no constant plane of NaNs to keep
+                cv2.add(self.window[j], np.nan, dst=self.window[j], mask=mask)
 
     def finish(self) -> None:
-        """Settle the pixels whose best lies in the last k frames."""
+        """Settle the pixels whose best lies in the last k frames.
+
+        Then the ring of focus frames and the scratch planes are let go (the tracker
+        takes no more frames): :func:`fit_peaks` needs only the settled state.
+        """
+        if self._finished:
+            return
         last = self.n_frames - 1
         for m in range(max(0, last - self.k + 1), last + 1):
             self._settle(m, upto=last)
+        self._finished = True
+        self.ring = [None] * len(self.ring)
+        self.lagmax = self._better = self._far = self._frame_no = self._scratch = None
+
+    def release_curves(self) -> None:
+        """Let go of the per-pixel curves (window, best, before/after) once
+        :func:`fit_peaks` has run; :attr:`centroid_px` and :attr:`shape` stay."""
+        self.finish()
+        self.window = self.best = self.before = self.after = None
 
     @property
     def centroid_px(self) -> tuple[np.ndarray, np.ndarray] | None:

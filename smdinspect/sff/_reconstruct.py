@@ -85,9 +85,10 @@ def reconstruct(
     n = len(stack)
     z_mm = stack.z_mm
     alignment: Alignment | None = None
-    # frames decoded (and made grey) by the alignment pre-pass, kept (up to
-    # FRAME_CACHE_BYTES) for the main pass instead of being decoded twice
-    cache: dict[int, tuple[np.ndarray, np.ndarray]] = {}
+    # frames decoded by the alignment pre-pass, kept (up to FRAME_CACHE_BYTES) for the
+    # main pass instead of being decoded twice; only the decoded image (its grey is
+    # remade from it: cheaper than keeping a float32 copy)
+    cache: dict[int, np.ndarray] = {}
     # power spectra of tiles of the frames read before the main pass (for prefilter "auto")
     powers: dict[int, np.ndarray | None] = {}
     auto = config.prefilter_px == "auto"
@@ -100,9 +101,9 @@ def reconstruct(
         if auto:
             mean = float(gray.mean())
             powers[i] = band_powers(gray * np.float32(MEAN_GREY / mean) if mean > 0 else gray)
-        if cached[0] + image.nbytes + gray.nbytes <= FRAME_CACHE_BYTES:
-            cache[i] = image, gray
-            cached[0] += image.nbytes + gray.nbytes
+        if cached[0] + image.nbytes <= FRAME_CACHE_BYTES:
+            cache[i] = image
+            cached[0] += image.nbytes
         return gray
 
     if config.align:
@@ -142,10 +143,10 @@ def reconstruct(
                       and config.fit != FitMethod.ARGMAX)
 
     def load(i: int):
-        image, gray = cache.pop(i, (None, None))
+        image = cache.pop(i, None)
         if image is None:
             image = stack.read_frame(i)
-            gray = to_gray(image)
+        gray = to_gray(image)
         mean = float(gray.mean())
         # Same mean grey in every frame: exposure drift, flicker and auto-gain change the
         # focus measure, defocus does not change the mean (blur conserves light).
@@ -227,7 +228,10 @@ def reconstruct(
             cv2.copyTo(image, better.view(np.uint8), aif)
             if progress is not None:
                 progress(i + 1, n)
+        del image, focus, small, moments, better  # the last frame's planes
     t_stream = time.perf_counter() - t0
+    centroid = tracker.centroid_px
+    tracker.moments = None  # summed into the centroid
 
     # a pre-filtered noise is correlated: the noise test must ask for a larger peak
     noise_gain = 1.0
@@ -245,9 +249,9 @@ def reconstruct(
         meta["alignment"] = alignment.summary()
     confidence[~field] = 0.0
     height = fit.coarse_mm if config.fit == FitMethod.ARGMAX else fit.height_mm
-    if tracker.centroid_px is not None:
+    if centroid is not None:
         height = centroid_correction(height, confidence >= config.min_confidence,
-                                     tracker.centroid_px, window_px=config.window_px,
+                                     centroid, window_px=config.window_px,
                                      max_mm=abs(stack.step_mm),
                                      width_steps=fit.sigma_mm / np.float32(abs(stack.step_mm)))
     from_coarse = None
@@ -353,8 +357,10 @@ def _level(tracker: PeakTracker, z_mm: np.ndarray, config: FocusConfig, *, windo
     tracker.finish()
     fit = fit_peaks(tracker, z_mm, method=config.fit, workers=config.workers,
                     power=FocusOperator(config.operator).curve_power)
+    tracker.release_curves()  # the fit holds what is needed from here on
     cues = confidence_cues(fit, window_px=window_px, noise_spread_gain=noise_gain)
     confidence = confidence_map(fit, window_px=window_px, cues=cues)
+    cues = {key: cues[key] for key in ("noise", "second_mode")}  # the others are spent
     first, last = fit.best_idx == 0, fit.best_idx == len(z_mm) - 1
     halo = np.zeros(tracker.shape, bool)
     if config.halo_ratio > 0:

@@ -1,0 +1,86 @@
+"""The sorted, shared-grouping halo search equals the per-pixel reference it replaced."""
+
+import cv2
+import numpy as np
+import pytest
+
+from smdinspect.sff._confidence import defocus_halo_mask, halo_mask
+
+
+def _reference_halo_mask(amplitude, frame_pos, candidate, *, radius_px, min_frames=2.0,
+                         ratio=4.0):
+    """halo_mask as it was before the speed-up (commit 424390d)."""
+    h, w = amplitude.shape
+    s = max(1, radius_px // 4)
+    hs, ws = -(-h // s), -(-w // s)
+    rs = max(1, radius_px // s)
+    disk = cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (2 * rs + 1, 2 * rs + 1))
+    bins = np.clip(np.round(frame_pos), 0, None).astype(np.int32)
+    bins[~np.isfinite(frame_pos)] = 0
+    nb = int(bins.max()) + 1
+    gap = max(1, int(np.ceil(min_frames)))
+    strong = np.where(candidate, amplitude, 0).astype(np.float32).ravel()
+    order = np.argsort(bins.ravel(), kind="stable")
+    starts = np.searchsorted(bins.ravel()[order], np.arange(nb + 1))
+    members = [order[starts[b]:starts[b + 1]] for b in range(nb)]
+    cell = ((np.arange(h) // s)[:, None] * ws + (np.arange(w) // s)[None, :]).ravel()
+    has_candidate = [bool(strong[m].any()) for m in members]
+
+    def spread(b):
+        pooled = np.zeros(hs * ws, np.float32)
+        np.maximum.at(pooled, cell[members[b]], strong[members[b]])
+        return cv2.dilate(pooled.reshape(hs, ws), disk).ravel()
+
+    dom = np.zeros(h * w, np.float32)
+    for bins_in_order in (range(nb), range(nb - 1, -1, -1)):
+        running = np.zeros(hs * ws, np.float32)
+        pending = []
+        for b in bins_in_order:
+            pending.append(spread(b) if has_candidate[b] else None)
+            if len(pending) > gap:
+                done = pending.pop(0)
+                if done is not None:
+                    np.maximum(running, done, out=running)
+            m = members[b]
+            if m.size:
+                dom[m] = np.maximum(dom[m], running[cell[m]])
+    return dom.reshape(h, w) > ratio * amplitude
+
+
+def _scene(seed, shape=(157, 203), n_frames=13):
+    rng = np.random.default_rng(seed)
+    amp = (rng.gamma(0.6, 1.0, shape) * rng.random(shape) ** 3).astype(np.float32)
+    amp[rng.random(shape) < 0.2] = 0
+    pos = rng.uniform(-0.4, n_frames - 0.6, shape)
+    pos[rng.random(shape) < 0.01] = np.nan
+    cand = rng.random(shape) < 0.4
+    return amp, pos, cand
+
+
+@pytest.mark.parametrize("seed", [0, 1, 2])
+@pytest.mark.parametrize("radius_px, min_frames, ratio", [(3, 2, 4.0), (11, 3, 2.0),
+                                                          (40, 5, 9.5), (1, 1, 1.0)])
+def test_halo_mask_equals_reference(seed, radius_px, min_frames, ratio):
+    amp, pos, cand = _scene(seed)
+    got = halo_mask(amp, pos, cand, radius_px=radius_px, min_frames=min_frames, ratio=ratio)
+    want = _reference_halo_mask(amp, pos, cand, radius_px=radius_px, min_frames=min_frames,
+                                ratio=ratio)
+    assert got.dtype == bool and got.shape == amp.shape
+    assert np.array_equal(got, want)
+
+
+@pytest.mark.parametrize("kappa", [0.0, 0.7, 6.0])
+def test_defocus_halo_mask_equals_reference(kappa):
+    amp, pos, cand = _scene(5, n_frames=21)
+    kwargs = dict(base_radius_px=11, ratio=4.0, n_frames=21, power=2.0)
+    got = defocus_halo_mask(amp, pos, cand, blur_px_per_frame=kappa, **kwargs)
+    want = np.zeros(amp.shape, bool)
+    last = -1
+    for g in (2, 3, 5, 8, 13):
+        radius = int(min(max(11, min(amp.shape) // 4), max(11, round(2 * kappa * g))))
+        if radius == last and g != 2:
+            continue
+        want |= _reference_halo_mask(amp, pos, cand, radius_px=radius, min_frames=g,
+                                     ratio=4.0 * (g / 2) ** 2)
+        last = radius
+    assert np.array_equal(got, want)
