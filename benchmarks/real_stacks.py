@@ -7,7 +7,7 @@ the fractional frame position, (flat target only) plane and quadratic fits of th
 target, and wall time of ``reconstruct()`` and of the ``smdinspect reconstruct`` command.
 
     .venv/bin/python benchmarks/real_stacks.py [--stacks pcb-oblique,metal-bore]
-        [--repeat 3] [--json out.json] [--pictures DIR] [--quick] [--data DIR]
+        [--repeat 5] [--json out.json] [--pictures DIR] [--quick] [--data DIR]
 """
 
 from __future__ import annotations
@@ -158,21 +158,57 @@ def figures(name: str, full, even, field: np.ndarray) -> dict:
     return out
 
 
-#: Runs argv[2:] with stdout to /dev/null and stderr to argv[1]; prints "rc wall_s maxrss_kib".
-#: A fresh launcher process is needed because on Linux a child's ru_maxrss starts at the
-#: RSS of the process it was forked from (here this benchmark, ~1 GB after a reconstruction).
+#: Runs argv[2:] with stdout to /dev/null and stderr to argv[1]; prints
+#: "rc wall_s user_s sys_s maxrss_kib". A fresh launcher process is needed because on
+#: Linux a child's ru_maxrss starts at the RSS of the process it was forked from (here
+#: this benchmark, ~1 GB after a reconstruction).
 LAUNCHER = """import os, sys, time
 acts = [(os.POSIX_SPAWN_OPEN, 1, os.devnull, os.O_WRONLY, 0),
         (os.POSIX_SPAWN_OPEN, 2, sys.argv[1], os.O_WRONLY | os.O_CREAT | os.O_TRUNC, 0o644)]
 t0 = time.perf_counter()
 pid = os.posix_spawn(sys.argv[2], sys.argv[2:], os.environ, file_actions=acts)
 _, status, usage = os.wait4(pid, 0)
-print(os.waitstatus_to_exitcode(status), time.perf_counter() - t0, usage.ru_maxrss)
+print(os.waitstatus_to_exitcode(status), time.perf_counter() - t0, usage.ru_utime,
+      usage.ru_stime, usage.ru_maxrss)
 """
 
 
+def time_process(cmd: list[str], repeat: int) -> dict:
+    """Whole-process figures of ``cmd`` (imports, reading, writing), one fresh process a run.
+
+    Returns the medians over ``repeat`` runs of the wall time (s), the CPU time (user +
+    system, s) and the peak RSS (MiB), every run's figures, and the machine's 1-minute
+    load average before each run (the machine may be shared: quote it with the times).
+    """
+    walls, cpus, rss, loads = [], [], [], []
+    for _ in range(repeat):
+        with tempfile.TemporaryDirectory(prefix="smd-bench-") as tmp:
+            err = Path(tmp) / "stderr.txt"
+            loads.append(os.getloadavg()[0])
+            done = subprocess.run([sys.executable, "-c", LAUNCHER, str(err),
+                                   *[c.replace("{tmp}", tmp) for c in cmd]],
+                                  capture_output=True, text=True, check=True)
+            rc, wall_s, user_s, sys_s, maxrss_kib = done.stdout.split()
+            if int(rc) != 0:
+                tail = err.read_text().strip().splitlines()[-1:] or ["(no output)"]
+                raise RuntimeError(f"{Path(cmd[0]).name} exited {rc}: {tail[0]}")
+            walls.append(float(wall_s))
+            cpus.append(float(user_s) + float(sys_s))
+            rss.append(int(maxrss_kib) / 1024)  # Linux: KiB
+    return {"wall_s": statistics.median(walls), "cpu_s": statistics.median(cpus),
+            "peak_mib": statistics.median(rss), "runs": repeat, "walls_s": walls,
+            "peaks_mib": rss, "load_1min": loads}
+
+
+def describe_process(t: dict) -> str:
+    """One line: medians of wall, CPU and peak RSS, the run count and the load range."""
+    return (f"wall {t['wall_s']:.2f} s, CPU {t['cpu_s']:.2f} s, peak RSS {t['peak_mib']:.0f} MiB "
+            f"(medians of {t['runs']}; wall {min(t['walls_s']):.2f}-{max(t['walls_s']):.2f} s; "
+            f"load {min(t['load_1min']):.1f}-{max(t['load_1min']):.1f})")
+
+
 def time_cli(paths: list[Path], step_mm: float, config: FocusConfig, repeat: int) -> dict:
-    """Median wall time (s) and peak RSS (MiB) of ``smdinspect reconstruct``, one process a run.
+    """Whole-process figures of ``smdinspect reconstruct`` (see :func:`time_process`).
 
     The CLI gets ``config``'s operator, window, fit and workers, since its defaults may
     differ from ``FocusConfig``'s (``threshold`` and ``edge_jump_steps`` have no flags).
@@ -180,21 +216,11 @@ def time_cli(paths: list[Path], step_mm: float, config: FocusConfig, repeat: int
     c = config.to_dict()
     options = [f"--{k.replace('_', '-')}={c[k]}" for k in
                ("operator", "window_px", "fit", "fit_half_width", "min_confidence", "workers")]
-    walls, rss = [], []
-    for _ in range(repeat):
-        with tempfile.TemporaryDirectory(prefix="smd-bench-") as tmp:
-            err = Path(tmp) / "stderr.txt"
-            cmd = [str(CLI), "reconstruct", *map(str, paths), "--step-mm", str(step_mm),
-                   *options, "--align", "--out", str(Path(tmp) / "out")]
-            done = subprocess.run([sys.executable, "-c", LAUNCHER, str(err), *cmd],
-                                  capture_output=True, text=True, check=True)
-            rc, wall_s, maxrss_kib = done.stdout.split()
-            if int(rc) != 0:
-                tail = err.read_text().strip().splitlines()[-1:] or ["(no output)"]
-                raise RuntimeError(f"smdinspect reconstruct exited {rc}: {tail[0]}")
-            walls.append(float(wall_s))
-            rss.append(int(maxrss_kib) / 1024)  # Linux: KiB
-    return {"cli_s": statistics.median(walls), "cli_peak_mib": statistics.median(rss)}
+    cmd = [str(CLI), "reconstruct", *map(str, paths), "--step-mm", str(step_mm),
+           *options, "--align", "--out", "{tmp}/out"]
+    t = time_process(cmd, repeat)
+    return {"cli_s": t["wall_s"], "cli_cpu_s": t["cpu_s"], "cli_peak_mib": t["peak_mib"],
+            "cli": t}
 
 
 def verdict(ok: bool) -> str:
@@ -234,14 +260,14 @@ def report(name: str, r: dict) -> None:
               f"({100 * f['quadratic_inliers']:.0f} % inliers)")
     line = f"  time: reconstruct() {r['reconstruct_s']:.2f} s (median of {r['repeat']})"
     if "cli_s" in r:
-        line += f"; CLI {r['cli_s']:.2f} s, peak RSS {r['cli_peak_mib']:.0f} MiB"
+        line += f"\n  smdinspect reconstruct: {describe_process(r['cli'])}"
     print(line)
 
 
 def main(argv: list[str] | None = None) -> int:
     p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     p.add_argument("--stacks", default=",".join(STACKS), help="comma-separated subset of: %(default)s")
-    p.add_argument("--repeat", type=int, default=3, help="timed runs per figure (median; default 3)")
+    p.add_argument("--repeat", type=int, default=5, help="timed runs per figure (median; default 5)")
     p.add_argument("--json", type=Path, default=None, help="also write the figures to this file")
     p.add_argument("--pictures", type=Path, default=None, help="save aif.png and height.png here")
     p.add_argument("--quick", action="store_true", help="skip the CLI timing")

@@ -58,8 +58,14 @@ SNR_BAD, SNR_OK = 1.2, 2.2
 
 def _ramp(x: np.ndarray, lo: float, hi: float) -> np.ndarray:
     """0 below ``lo``, 1 above ``hi``, smoothstep between (reversed when lo > hi)."""
-    t = np.clip((x - lo) / (hi - lo), 0.0, 1.0)
-    return t * t * (3.0 - 2.0 * t)
+    t = np.subtract(x, lo)
+    np.divide(t, hi - lo, out=t)
+    np.clip(t, 0.0, 1.0, out=t)
+    u = np.multiply(t, 2.0)  # t·t·(3 − 2t), in place: the same operations in order
+    np.subtract(3.0, u, out=u)
+    np.multiply(t, t, out=t)
+    np.multiply(t, u, out=t)
+    return t
 
 
 def confidence_map(fit: PeakFit, *, window_px: int = 9,
@@ -353,11 +359,20 @@ def unsupported_mask(height_mm: np.ndarray, reliable: np.ndarray, *, distance_px
     hv = np.where(reliable, height_mm, np.nan).astype(np.float32)
     offsets = {(sy * a, sx * b) for a, b in ((d, 0), (0, d), (d, d), (d, half), (half, d))
                for sy in (-1, 1) for sx in (-1, 1)}
+    diff = np.empty((h, w), np.float32)
+    near = np.empty((h, w), bool)
     for dy, dx in sorted(offsets):
-        if True:
-            # pixel (y, x) looks at (y + dy, x + dx)
-            ys, yd = slice(max(0, -dy), h - max(0, dy)), slice(max(0, dy), h - max(0, -dy))
-            xs, xd = slice(max(0, -dx), w - max(0, dx)), slice(max(0, dx), w - max(0, -dx))
-            with np.errstate(invalid="ignore"):
-                supported[ys, xs] |= np.abs(hv[ys, xs] - hv[yd, xd]) <= tol_mm
+        if (dy, dx) < (0, 0):
+            continue  # |a - b| = |b - a|: the opposite offset's test marks both ends
+        # pixel (y, x) looks at (y + dy, x + dx), and (y + dy, x + dx) at (y, x)
+        ys, yd = slice(max(0, -dy), h - max(0, dy)), slice(max(0, dy), h - max(0, -dy))
+        xs, xd = slice(max(0, -dx), w - max(0, dx)), slice(max(0, dx), w - max(0, -dx))
+        part = diff[: ys.stop - ys.start, : xs.stop - xs.start]
+        ok = near[: ys.stop - ys.start, : xs.stop - xs.start]
+        with np.errstate(invalid="ignore"):
+            np.subtract(hv[ys, xs], hv[yd, xd], out=part)
+            np.abs(part, out=part)
+            np.less_equal(part, tol_mm, out=ok)
+        supported[ys, xs] |= ok
+        supported[yd, xd] |= ok
     return reliable & ~supported

@@ -84,3 +84,34 @@ def test_defocus_halo_mask_equals_reference(kappa):
                                      ratio=4.0 * (g / 2) ** 2)
         last = radius
     assert np.array_equal(got, want)
+
+
+def _reference_unsupported_mask(height_mm, reliable, *, distance_px, tol_mm):
+    """unsupported_mask as it was before the speed-up (commit 424390d)."""
+    h, w = height_mm.shape
+    d = int(distance_px)
+    half = max(1, d // 2)
+    supported = np.zeros((h, w), bool)
+    hv = np.where(reliable, height_mm, np.nan).astype(np.float32)
+    offsets = {(sy * a, sx * b) for a, b in ((d, 0), (0, d), (d, d), (d, half), (half, d))
+               for sy in (-1, 1) for sx in (-1, 1)}
+    for dy, dx in sorted(offsets):
+        ys, yd = slice(max(0, -dy), h - max(0, dy)), slice(max(0, dy), h - max(0, -dy))
+        xs, xd = slice(max(0, -dx), w - max(0, dx)), slice(max(0, dx), w - max(0, -dx))
+        with np.errstate(invalid="ignore"):
+            supported[ys, xs] |= np.abs(hv[ys, xs] - hv[yd, xd]) <= tol_mm
+    return reliable & ~supported
+
+
+@pytest.mark.parametrize("distance_px, tol_mm", [(9, 0.05), (1, 0.2), (5, np.float64(0.1)),
+                                                 (14, 0.3)])
+def test_unsupported_mask_equals_reference(distance_px, tol_mm):
+    from smdinspect.sff._confidence import unsupported_mask
+
+    rng = np.random.default_rng(distance_px)
+    height = np.cumsum(rng.normal(0, 0.05, (97, 131)), axis=1).astype(np.float32)
+    height[rng.random(height.shape) < 0.05] += 1.0
+    reliable = rng.random(height.shape) < 0.7
+    got = unsupported_mask(height, reliable, distance_px=distance_px, tol_mm=tol_mm)
+    want = _reference_unsupported_mask(height, reliable, distance_px=distance_px, tol_mm=tol_mm)
+    assert np.array_equal(got, want)
