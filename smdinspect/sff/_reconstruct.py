@@ -188,7 +188,12 @@ def reconstruct(
             if mx is not None:
                 # offsets in frame i's pixels -> the reference grid's
                 inv = np.linalg.inv(alignment.transforms[i][:2, :2]).astype(np.float32)
-                mx, my = (inv[0, 0] * mx + inv[0, 1] * my, inv[1, 0] * mx + inv[1, 1] * my)
+                if abs(inv[0, 1]) + abs(inv[1, 0]) < 1e-6 * (abs(inv[0, 0]) + abs(inv[1, 1])):
+                    mx *= inv[0, 0]  # no rotation (the usual focus zoom): in place
+                    my *= inv[1, 1]
+                else:
+                    mx, my = (cv2.addWeighted(mx, float(inv[0, 0]), my, float(inv[0, 1]), 0.0),
+                              cv2.addWeighted(mx, float(inv[1, 0]), my, float(inv[1, 1]), 0.0))
                 mx, my = alignment.warp(mx, i), alignment.warp(my, i)
             focus = alignment.warp(focus, i)
             image = alignment.warp(image, i)
