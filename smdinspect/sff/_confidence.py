@@ -196,8 +196,8 @@ class _HaloGroups:
                  candidate: np.ndarray) -> None:
         h, w = amplitude.shape
         self.shape = (h, w)
-        bins = np.clip(np.round(frame_pos), 0, None).astype(np.int32)
-        bins[~np.isfinite(frame_pos)] = 0
+        bins = np.clip(np.round(np.nan_to_num(frame_pos, nan=0.0, posinf=0.0, neginf=0.0)), 0,
+                       None).astype(np.int32)  # a non-finite position is bin 0
         flat = bins.ravel()
         self.nb = nb = int(flat.max()) + 1
         key = flat.astype(np.uint8 if nb <= 256 else np.int16) if nb <= 32767 else flat

@@ -15,8 +15,8 @@ def _reference_halo_mask(amplitude, frame_pos, candidate, *, radius_px, min_fram
     hs, ws = -(-h // s), -(-w // s)
     rs = max(1, radius_px // s)
     disk = cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (2 * rs + 1, 2 * rs + 1))
-    bins = np.clip(np.round(frame_pos), 0, None).astype(np.int32)
-    bins[~np.isfinite(frame_pos)] = 0
+    bins = np.clip(np.round(np.nan_to_num(frame_pos, nan=0.0, posinf=0.0, neginf=0.0)), 0,
+                   None).astype(np.int32)  # a non-finite position is bin 0
     nb = int(bins.max()) + 1
     gap = max(1, int(np.ceil(min_frames)))
     strong = np.where(candidate, amplitude, 0).astype(np.float32).ravel()
