@@ -351,3 +351,173 @@ def refine_with_features(pairs: list[FeaturePair], T0: np.ndarray, *, min_pairs:
         "rms_mm": round(float(np.sqrt(np.mean(res[keep] ** 2))), 5),
     }
     return T, info
+
+
+# --------------------------------------------------------------------------------------
+# Global pose from bodies: match measured body blobs to the reference layout.
+# --------------------------------------------------------------------------------------
+
+#: A measured blob matches a body when its area is within this fraction of the nominal
+#: body area and its minimum-area rectangle's sides within :data:`BLOB_SIDE_TOL_MM`
+#: (or 20 %) of the body's length and width.
+BLOB_AREA_TOL = 0.2
+BLOB_SIDE_TOL_MM = 0.12
+#: Two bodies closer than this (mm) do not define a rotation well enough to propose one.
+MIN_PAIR_SPAN_MM = 2.0
+
+
+@dataclass(frozen=True)
+class _Blob:
+    xy: tuple[float, float]      # centroid, WORLD mm
+    sides: tuple[float, float]   # min-area rectangle, long side first (mm)
+    angle_deg: float             # direction of the long side, mod 180
+
+
+def _measured_blobs(height, reliable, level_mm: float, p: float) -> list[_Blob]:
+    """Connected reliable regions standing higher than ``level_mm`` (holes filled)."""
+    import cv2
+    from scipy.ndimage import binary_fill_holes
+
+    cand = reliable & (height > level_mm)
+    k = cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (7, 7))
+    cand = cv2.morphologyEx(cand.astype(np.uint8), cv2.MORPH_CLOSE, k)
+    n, lab, stats, _ = cv2.connectedComponentsWithStats(cand, connectivity=8)
+    H, W = height.shape
+    out = []
+    for i in range(1, n):
+        x, y, w, h, area = stats[i]
+        if area * p * p < 0.05:                          # smaller than any body we know
+            continue
+        # A region touching the image border is cut: its centroid is not the body's.
+        if x == 0 or y == 0 or x + w >= W or y + h >= H:
+            continue
+        blob = binary_fill_holes(lab[y:y + h, x:x + w] == i)
+        rows, cols = np.nonzero(blob)
+        pts = np.column_stack([cols + x, rows + y]).astype(np.float32)
+        (_, _), (a, b), ang = cv2.minAreaRect(pts)
+        # minAreaRect: side a along angle `ang` (image x right, y down).
+        a, b = (a + 1.0) * p, (b + 1.0) * p
+        if b > a:
+            a, b, ang = b, a, ang + 90.0
+        cx, cy = pixel_to_world(np.array([[cols.mean() + x, rows.mean() + y]]), shape=(H, W),
+                                pixel_size_mm=p)[0]
+        # Image y points down: a direction at image angle `ang` is at -ang in WORLD.
+        out.append(_Blob((float(cx), float(cy)), (float(a), float(b)), float((-ang) % 180.0)))
+    return out
+
+
+def _blob_matches(comp, blob: _Blob) -> bool:
+    L, Wd = max(comp.body_length_mm, comp.body_width_mm), min(comp.body_length_mm, comp.body_width_mm)
+    a, b = blob.sides
+    area = a * b
+    nominal = L * Wd
+    # The rectangle of a filled blob bounds it: its area is at least the blob's.
+    if not (1 - BLOB_AREA_TOL) * nominal <= area <= (1 + 2 * BLOB_AREA_TOL) * nominal:
+        return False
+    return (abs(a - L) <= max(BLOB_SIDE_TOL_MM, 0.2 * L)
+            and abs(b - Wd) <= max(BLOB_SIDE_TOL_MM, 0.2 * Wd))
+
+
+def _long_axis_deg(comp) -> float:
+    return (comp.rotation_deg + (0.0 if comp.body_length_mm >= comp.body_width_mm else 90.0)) % 180.0
+
+
+def _angle_diff(a: float, b: float, period: float = 180.0) -> float:
+    d = (a - b) % period
+    return min(d, period - d)
+
+
+def global_body_pose(height, reliable, board, p, *, T_nominal: np.ndarray,
+                     max_rotation_deg: float, max_offset_mm: float,
+                     tol_mm: float = 0.08):
+    """Placement of ``board`` from its bodies alone, wherever the board lies in the image.
+
+    Every measured blob that has the size and shape of some component's body (above
+    that body's presence threshold, not cut by the image border) is a candidate match
+    of that body. Every two candidate matches of different bodies, at least
+    :data:`MIN_PAIR_SPAN_MM` apart and as far apart in the image as on the board
+    (within ``2 tol_mm``), propose a rigid placement; placements turned more than
+    ``max_rotation_deg`` or moved more than ``max_offset_mm`` from ``T_nominal`` (with
+    one body-search distance to spare) are dropped, as are pairs whose blobs' long axes
+    do not turn with the placement. A placement's support is the number of bodies with
+    a matching blob within ``tol_mm`` of where it puts them (each blob used once); the
+    best-supported one (then the smallest summed residual) is refitted to its
+    supporting bodies by least squares (2D Procrustes).
+
+    Returns
+    -------
+    T : (3, 3) float64 or None
+        None when no two bodies agree.
+    info : dict
+        ``support`` (body refs), ``rms_mm``, ``hypotheses`` (how many were scored).
+    """
+    comps = list(board.components)
+    levels = sorted({round(presence_threshold_mm(c), 4) for c in comps})
+    blobs_at = {lv: _measured_blobs(height, reliable, lv, p) for lv in levels}
+    cand: list[tuple[int, _Blob]] = []
+    for ci, c in enumerate(comps):
+        for b in blobs_at[round(presence_threshold_mm(c), 4)]:
+            if _blob_matches(c, b):
+                cand.append((ci, b))
+    if len(cand) < 2:
+        return None, {"reason": f"{len(cand)} body-sized blobs", "hypotheses": 0}
+    src = np.array([[comps[ci].x_mm, comps[ci].y_mm] for ci, _ in cand])
+    dst = np.array([b.xy for _, b in cand])
+    cidx = np.array([ci for ci, _ in cand])
+    rot0 = math.degrees(math.atan2(T_nominal[1, 0], T_nominal[0, 0]))
+    centre = np.array(board.size_mm, np.float64) / 2.0
+    c_nom = apply2d(T_nominal, centre[None])[0]
+
+    def support(T):
+        pred = apply2d(T, src)
+        r = np.hypot(*(pred - dst).T)
+        ok = r <= tol_mm
+        # Each body and each blob counted once: the nearest blob for each body.
+        best: dict[int, tuple[float, int]] = {}
+        for k in np.nonzero(ok)[0]:
+            if cidx[k] not in best or r[k] < best[cidx[k]][0]:
+                best[cidx[k]] = (float(r[k]), int(k))
+        used_blobs = {}
+        for ci, (rk, k) in best.items():
+            key = dst[k].tobytes()
+            if key not in used_blobs or rk < best[used_blobs[key]][0]:
+                used_blobs[key] = ci
+        keep = [best[ci][1] for ci in used_blobs.values()]
+        return len(keep), -float(sum(r[k] for k in keep)), keep
+
+    best = (0, 0.0, [])
+    best_T = None
+    n_hyp = 0
+    for i in range(len(cand)):
+        for j in range(i + 1, len(cand)):
+            if cidx[i] == cidx[j] or cand[i][1] is cand[j][1]:
+                continue
+            d_b = float(np.hypot(*(src[i] - src[j])))
+            if d_b < MIN_PAIR_SPAN_MM:
+                continue
+            if abs(float(np.hypot(*(dst[i] - dst[j]))) - d_b) > 2 * tol_mm:
+                continue
+            T = fit_rigid2d(src[[i, j]], dst[[i, j]])
+            rot = math.degrees(math.atan2(T[1, 0], T[0, 0]))
+            if _angle_diff(rot, rot0, 360.0) > max_rotation_deg + 1.0:
+                continue
+            if float(np.hypot(*(apply2d(T, centre[None])[0] - c_nom))) > max_offset_mm + BODY_SEARCH_MM:
+                continue
+            # The blobs' long axes must turn with the placement (square bodies say nothing).
+            for k in (i, j):
+                c, b = comps[cidx[k]], cand[k][1]
+                if b.sides[0] > 1.15 * b.sides[1] and \
+                        _angle_diff(b.angle_deg, _long_axis_deg(c) + rot) > 10.0:
+                    break
+            else:
+                n_hyp += 1
+                s = support(T)
+                if s[:2] > best[:2]:
+                    best, best_T = s, T
+    if best_T is None or best[0] < 2:
+        return None, {"reason": "no two bodies agree", "hypotheses": n_hyp}
+    keep = best[2]
+    T = fit_rigid2d(src[keep], dst[keep])
+    res = np.hypot(*(apply2d(T, src[keep]) - dst[keep]).T)
+    return T, {"support": sorted(comps[cidx[k]].ref for k in keep), "hypotheses": n_hyp,
+               "rms_mm": round(float(np.sqrt(np.mean(res ** 2))), 5)}

@@ -37,7 +37,13 @@ import numpy as np
 from ..errors import InputError
 from ._config import InspectConfig
 from ._geometry import apply2d, decompose2d, polygon_mask, rigid2d, world_to_pixel
-from ._features import feature_pairs, refine_with_features
+from ._features import (
+    BODY_SEARCH_MM,
+    CONSENSUS_MM,
+    feature_pairs,
+    global_body_pose,
+    refine_with_features,
+)
 from ._reference import Prism, reference_points, reference_prisms, render_reference
 
 __all__ = ["RegistrationResult", "masked_ncc", "register_board"]
@@ -442,6 +448,9 @@ def register_board(
                                                  f"a better fitness")
             else:
                 feat_info["rejected_fit"] = f"moved the board by {moved:.3f} mm"
+    if cfg.fine_features and initial is None:
+        T, method = _prefer_body_layout(height, reliable, aif, board, p, cfg, T, method,
+                                        centre_img - centre_board, meta)
     ref_pts, ref_n = reference_points(board, spacing_mm=max(p, 0.04), seed=cfg.seed)
     meas = _measured_points(height, reliable, p, board, T, max_points=20000, seed=cfg.seed)
     fit0, rmse0 = _evaluate(meas, ref_pts, T, cfg.icp_distance_mm)
@@ -469,9 +478,9 @@ def register_board(
     # the reference coverage drop; the joints then say what is missing).
     feat = meta.get("features") or {}
     used_bodies = [u for u in feat.get("used", []) if u.startswith("body:")]
-    by_features = (method.startswith("coarse+features") and len(feat.get("used", [])) >= 3
+    by_features = ("features" in method and len(feat.get("used", [])) >= 3
                    and len(used_bodies) >= 0.5 * len(board.components)
-                   and float(feat.get("rms_mm", 1.0)) <= 0.02 and fit >= cfg.min_fitness)
+                   and float(feat.get("rms_mm", 1.0)) <= 0.5 * CONSENSUS_MM and fit >= cfg.min_fitness)
     meta["located_by_features"] = bool(by_features)
     if math.isfinite(coverage) and not by_features:
         fit = min(fit, coverage)
@@ -500,6 +509,64 @@ def register_board(
              "fitness %.3f, rmse %.1f µm%s", method, result.rotation_deg, *result.offset_mm,
              score, fit, rmse * 1000, "" if not reasons else " -- NOT LOCATED: " + result.reason)
     return result
+
+
+def _support(pairs, T) -> tuple[int, list[str]]:
+    """Features found where ``T`` puts them (within the consensus distance)."""
+    ok = [f"{fp.kind}:{fp.id}" for fp in pairs
+          if math.hypot(*(apply2d(T, np.array([fp.board_xy]))[0] - fp.world_xy)) <= CONSENSUS_MM]
+    return len(ok), ok
+
+
+def _prefer_body_layout(height, reliable, aif, board, p, cfg, T, method, t_nominal, meta):
+    """Check the placement against one found from the bodies' layout alone.
+
+    The height-map correlation can prefer a wrong pose when a large part of the
+    reference is absent or changed (a missing or tombstoned part, a part cut by the
+    field edge): its optimum then follows the remaining large shapes. Matching the
+    measured body blobs to the reference layout (:func:`global_body_pose`) gives an
+    independent placement; each is refined by the local features, and the one under
+    which more bodies and fiducials lie where it puts them wins (ties: the better
+    fitness of the measured raised points). A board without two matching bodies keeps
+    the correlation's placement.
+    """
+    T_nom = rigid2d(0.0, *t_nominal)
+    T_b, info = global_body_pose(height, reliable, board, p, T_nominal=T_nom,
+                                 max_rotation_deg=cfg.max_rotation_deg,
+                                 max_offset_mm=cfg.max_offset_mm)
+    meta["body_layout"] = info
+    if T_b is None or _moved_mm(T, T_b, board) <= CONSENSUS_MM:
+        return T, method
+    method_b = "bodies"
+    pairs_b = feature_pairs(height, reliable, aif, board, T_b, p)
+    T_bf, info_b = refine_with_features(pairs_b, T_b)
+    if T_bf is not None and _moved_mm(T_b, T_bf, board) <= BODY_SEARCH_MM:
+        T_b, method_b = T_bf, "bodies+features"
+        pairs_b = feature_pairs(height, reliable, aif, board, T_b, p)
+    pairs_a = feature_pairs(height, reliable, aif, board, T, p)
+    n_a, ok_a = _support(pairs_a, T)
+    n_b, ok_b = _support(pairs_b, T_b)
+    info["support_current_vs_layout"] = [n_a, n_b]
+    better = n_b > n_a
+    if n_b == n_a and n_b > 0:
+        ref_pts, _ = reference_points(board, spacing_mm=max(p, 0.04), seed=cfg.seed)
+        meas = _measured_points(height, reliable, p, board, T, max_points=20000, seed=cfg.seed)
+        meas_b = _measured_points(height, reliable, p, board, T_b, max_points=20000,
+                                  seed=cfg.seed)
+        f_a = _evaluate(meas, ref_pts, T, cfg.icp_distance_mm)[0]
+        f_b = _evaluate(meas_b, ref_pts, T_b, cfg.icp_distance_mm)[0]
+        info["fitness_current_vs_layout"] = [round(f_a, 4), round(f_b, 4)]
+        better = f_b > f_a
+    if not better:
+        return T, method
+    info["kept"] = True
+    if method_b == "bodies+features":
+        meta["features"] = info_b
+    else:
+        meta["features"] = {"used": ok_b, "rejected": [], "rms_mm": info.get("rms_mm")}
+    log.debug("placement from the body layout (%d features agree) replaces %s (%d)",
+              n_b, method, n_a)
+    return T_b, method_b
 
 
 def _moved_mm(T0: np.ndarray, T1: np.ndarray, board) -> float:
