@@ -20,7 +20,9 @@ lock onto one large shifted part (an IC) and leave every other part that far off
 A consensus (every two pairs propose a rigid transform; the one most pairs agree with
 within :data:`CONSENSUS_MM` wins) removes such a part before a weighted least-squares
 rigid transform (2D Procrustes) is fitted to the agreeing pairs, with iterative rejection
-of pairs off by more than ``max(3 × median residual, 30 µm)``. Fiducials weigh 20 times
+of the worst pair while it is off by more than ``max(3 × median residual, 30 µm)``, its
+residual taken off the fit of the others (deletion residual: a biased body pulls the fit
+of all towards itself). Fiducials weigh 20 times
 more than bodies (see :data:`FIDUCIAL_WEIGHT`).
 """
 
@@ -341,7 +343,17 @@ def refine_with_features(pairs: list[FeaturePair], T0: np.ndarray, *, min_pairs:
         res = np.hypot(*(apply2d(T, src) - dst).T)
         lim = max(3.0 * float(np.median(res[keep])), max_residual_mm)
         worst = int(np.argmax(np.where(keep, res, -1.0)))
-        if res[worst] <= lim:
+        if res[worst] <= lim and keep.sum() > min_pairs:
+            # The worst pair pulls the fit towards itself, so its own residual
+            # understates it: judge it by its deletion residual (off the fit of the
+            # others) against the others' spread under that fit.
+            rest = keep.copy()
+            rest[worst] = False
+            T_del = fit_rigid2d(src[rest], dst[rest], w[rest])
+            r_del = np.hypot(*(apply2d(T_del, src) - dst).T)
+            if r_del[worst] <= max(3.0 * float(np.median(r_del[rest])), max_residual_mm):
+                break
+        elif res[worst] <= lim:
             break
         keep[worst] = False
     info = {
@@ -357,11 +369,11 @@ def refine_with_features(pairs: list[FeaturePair], T0: np.ndarray, *, min_pairs:
 # Global pose from bodies: match measured body blobs to the reference layout.
 # --------------------------------------------------------------------------------------
 
-#: A measured blob matches a body when its area is within this fraction of the nominal
-#: body area and its minimum-area rectangle's sides within :data:`BLOB_SIDE_TOL_MM`
-#: (or 20 %) of the body's length and width.
-BLOB_AREA_TOL = 0.2
-BLOB_SIDE_TOL_MM = 0.12
+#: A measured blob matches a body when its area (holes filled) is 0.8-1.2 times the
+#: nominal body area (as in the local body search) and its minimum-area rectangle's
+#: sides lie within :data:`BLOB_SIDE_TOL_MM` (or 25 %) of the body's length and width
+#: (through shape from focus a body's blob grows by up to ~0.2 mm across: edge blur).
+BLOB_SIDE_TOL_MM = 0.25
 #: Two bodies closer than this (mm) do not define a rotation well enough to propose one.
 MIN_PAIR_SPAN_MM = 2.0
 
@@ -371,6 +383,7 @@ class _Blob:
     xy: tuple[float, float]      # centroid, WORLD mm
     sides: tuple[float, float]   # min-area rectangle, long side first (mm)
     angle_deg: float             # direction of the long side, mod 180
+    area_mm2: float              # holes filled
 
 
 def _measured_blobs(height, reliable, level_mm: float, p: float) -> list[_Blob]:
@@ -402,20 +415,18 @@ def _measured_blobs(height, reliable, level_mm: float, p: float) -> list[_Blob]:
         cx, cy = pixel_to_world(np.array([[cols.mean() + x, rows.mean() + y]]), shape=(H, W),
                                 pixel_size_mm=p)[0]
         # Image y points down: a direction at image angle `ang` is at -ang in WORLD.
-        out.append(_Blob((float(cx), float(cy)), (float(a), float(b)), float((-ang) % 180.0)))
+        out.append(_Blob((float(cx), float(cy)), (float(a), float(b)), float((-ang) % 180.0),
+                         float(blob.sum() * p * p)))
     return out
 
 
 def _blob_matches(comp, blob: _Blob) -> bool:
     L, Wd = max(comp.body_length_mm, comp.body_width_mm), min(comp.body_length_mm, comp.body_width_mm)
     a, b = blob.sides
-    area = a * b
-    nominal = L * Wd
-    # The rectangle of a filled blob bounds it: its area is at least the blob's.
-    if not (1 - BLOB_AREA_TOL) * nominal <= area <= (1 + 2 * BLOB_AREA_TOL) * nominal:
+    if not 0.8 <= blob.area_mm2 / (L * Wd) <= 1.2:
         return False
-    return (abs(a - L) <= max(BLOB_SIDE_TOL_MM, 0.2 * L)
-            and abs(b - Wd) <= max(BLOB_SIDE_TOL_MM, 0.2 * Wd))
+    return (abs(a - L) <= max(BLOB_SIDE_TOL_MM, 0.25 * L)
+            and abs(b - Wd) <= max(BLOB_SIDE_TOL_MM, 0.25 * Wd))
 
 
 def _long_axis_deg(comp) -> float:

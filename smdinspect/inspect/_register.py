@@ -8,6 +8,14 @@ Coarse
     for every translation within ``±max_offset_mm``. The best (rotation, translation)
     is refined at twice the resolution around it, with sub-pixel / sub-step peak
     interpolation.
+Body layout
+    The measured body blobs (size and shape of a reference body, above its presence
+    threshold) are matched to the reference layout, every two matches proposing a rigid
+    placement (:func:`~._features.global_body_pose`). The correlation can prefer a wrong
+    pose when a large part of the reference is absent or changed (the largest part
+    missing, tombstoned, shifted or cut by the field edge); after both placements are
+    refined by the local features, the one under which more bodies and fiducials lie
+    where it puts them is kept.
 Fine
     Open3D point-to-plane ICP of the measured reliable points against points sampled on
     the reference mesh (trimesh). Only the in-plane part of the ICP's motion (rotation
@@ -18,7 +26,10 @@ Decision
     The board counts as located when the correlation score, the fitness (fraction of
     the measured raised points — bodies, leads, solder — that lie within
     ``icp_distance_mm`` of the reference surface) and the inlier RMSE pass the limits of
-    :class:`InspectConfig`. Otherwise ``converged`` is False and ``reason`` says why;
+    :class:`InspectConfig`, or when the features vouch for it (most bodies, or two
+    fiducials, agree with it to half the consensus distance and the fitness passes)
+    although a large part missing lowers the correlation and the reference coverage.
+    Otherwise ``converged`` is False and ``reason`` says why;
     :func:`smdinspect.inspect.inspect_surface` then raises
     :class:`~smdinspect.errors.BoardNotLocatedError` instead of judging joints against a
     wrong alignment.
@@ -472,14 +483,19 @@ def register_board(
     coverage = _coverage(height, reliable, p, ref_pts, ref_n, T_final, cfg.icp_distance_mm)
     meta["forward_fitness"] = fit
     meta["reference_coverage"] = coverage
-    # Most parts found where the placement puts them, to a few µm, and the measured
-    # raised points lie on the reference: the board is located even when a large part
-    # is missing (it takes most of the reference's raised area, so the correlation and
-    # the reference coverage drop; the joints then say what is missing).
+    # Most parts found where the placement puts them (RMS within half the consensus
+    # distance: shape-from-focus body centroids carry 10-40 µm of bias) and the
+    # measured raised points lie on the reference: the board is located even when a
+    # large part is missing (it takes most of the reference's raised area, so the
+    # correlation and the reference coverage drop; the joints then say what is missing).
     feat = meta.get("features") or {}
     used_bodies = [u for u in feat.get("used", []) if u.startswith("body:")]
+    used_fids = [u for u in feat.get("used", []) if u.startswith("fiducial:")]
+    # Fiducials are the board's own reference marks: two or more that agree with the
+    # placement (with at least three features in all, so the fit has redundancy)
+    # locate the board however many parts are defective.
     by_features = ("features" in method and len(feat.get("used", [])) >= 3
-                   and len(used_bodies) >= 0.5 * len(board.components)
+                   and (len(used_bodies) >= 0.5 * len(board.components) or len(used_fids) >= 2)
                    and float(feat.get("rms_mm", 1.0)) <= 0.5 * CONSENSUS_MM and fit >= cfg.min_fitness)
     meta["located_by_features"] = bool(by_features)
     if math.isfinite(coverage) and not by_features:
@@ -528,7 +544,8 @@ def _prefer_body_layout(height, reliable, aif, board, p, cfg, T, method, t_nomin
     independent placement; each is refined by the local features, and the one under
     which more bodies and fiducials lie where it puts them wins (ties: the better
     fitness of the measured raised points). A board without two matching bodies keeps
-    the correlation's placement.
+    the correlation's placement. Two bodies alone fit any placement exactly: one of
+    them biased (an excess fillet over its end) turns the board with it.
     """
     T_nom = rigid2d(0.0, *t_nominal)
     T_b, info = global_body_pose(height, reliable, board, p, T_nominal=T_nom,
@@ -547,16 +564,17 @@ def _prefer_body_layout(height, reliable, aif, board, p, cfg, T, method, t_nomin
     n_a, ok_a = _support(pairs_a, T)
     n_b, ok_b = _support(pairs_b, T_b)
     info["support_current_vs_layout"] = [n_a, n_b]
-    better = n_b > n_a
-    if n_b == n_a and n_b > 0:
-        ref_pts, _ = reference_points(board, spacing_mm=max(p, 0.04), seed=cfg.seed)
-        meas = _measured_points(height, reliable, p, board, T, max_points=20000, seed=cfg.seed)
-        meas_b = _measured_points(height, reliable, p, board, T_b, max_points=20000,
-                                  seed=cfg.seed)
-        f_a = _evaluate(meas, ref_pts, T, cfg.icp_distance_mm)[0]
-        f_b = _evaluate(meas_b, ref_pts, T_b, cfg.icp_distance_mm)[0]
-        info["fitness_current_vs_layout"] = [round(f_a, 4), round(f_b, 4)]
-        better = f_b > f_a
+    if n_b < n_a or n_b == 0:
+        return T, method
+    ref_pts, _ = reference_points(board, spacing_mm=max(p, 0.04), seed=cfg.seed)
+    meas = _measured_points(height, reliable, p, board, T, max_points=20000, seed=cfg.seed)
+    meas_b = _measured_points(height, reliable, p, board, T_b, max_points=20000, seed=cfg.seed)
+    f_a = _evaluate(meas, ref_pts, T, cfg.icp_distance_mm)[0]
+    f_b = _evaluate(meas_b, ref_pts, T_b, cfg.icp_distance_mm)[0]
+    info["fitness_current_vs_layout"] = [round(f_a, 4), round(f_b, 4)]
+    # More features agreeing wins; on a tie the measured raised points decide. (The
+    # fitness alone cannot: a large shifted part pulls it towards its own placement.)
+    better = f_b > f_a if n_b == n_a else True
     if not better:
         return T, method
     info["kept"] = True
