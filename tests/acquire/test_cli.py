@@ -155,10 +155,13 @@ def test_sigkill_mid_sweep_leaves_no_corrupt_frame_and_resumes(tmp_path, capsys)
 def test_ctrl_c_exits_130_and_keeps_frames(tmp_path, capsys):
     rig = sim_rig(tmp_path / "rig.toml", settle=0.03)
     out = tmp_path / "s"
+    # SIG_DFL: a test run started in the background by a shell inherits SIGINT ignored,
+    # and so would the child (Python installs its handler only when SIGINT is not ignored)
     proc = subprocess.Popen([sys.executable, "-m", "smdinspect", "-q", "acquire", "--rig",
                              str(rig), "--out", str(out)],
                             env={**os.environ, "PYTHONPATH": str(REPO)},
-                            stdout=subprocess.DEVNULL, stderr=subprocess.PIPE)
+                            stdout=subprocess.DEVNULL, stderr=subprocess.PIPE,
+                            preexec_fn=lambda: signal.signal(signal.SIGINT, signal.SIG_DFL))
     deadline = time.monotonic() + 60
     while time.monotonic() < deadline and proc.poll() is None:
         try:

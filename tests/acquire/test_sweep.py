@@ -168,6 +168,16 @@ def test_resume_on_same_controller_after_alarm_needs_unlock(frames_dir, tmp_path
 
 
 def test_ctrl_c_sends_feed_hold_keeps_frames_and_resumes(fake, frames_dir, tmp_path, reference):
+    # a test run started in the background by a shell has SIGINT ignored: restore what an
+    # interactive terminal gives (Ctrl-C raises KeyboardInterrupt)
+    previous = signal.signal(signal.SIGINT, signal.default_int_handler)
+    try:
+        _ctrl_c_at_fifth(fake, frames_dir, tmp_path, reference)
+    finally:
+        signal.signal(signal.SIGINT, previous)
+
+
+def _ctrl_c_at_fifth(fake, frames_dir, tmp_path, reference):
     class CtrlCAtFifth(FolderCamera):
         def capture(self):
             if self._next == 5:
