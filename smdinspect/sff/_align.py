@@ -47,6 +47,7 @@ CHECK_TOLERANCE_PX = 2.0
 #: than _ECC_MIN_SIDE pixels.
 _ECC_LEVELS = 3
 _ECC_MIN_SIDE = 64
+_ECC_CRITERIA = (cv2.TERM_CRITERIA_EPS | cv2.TERM_CRITERIA_COUNT, 100, 1e-6)
 
 
 @dataclass(frozen=True, eq=False)
@@ -175,10 +176,9 @@ def _ecc_pyramid(prev: np.ndarray, cur: np.ndarray, init: np.ndarray, n: int):
     level that converged or of the full-size attempt, whichever correlates better;
     correlation 0 and ``init`` when none converged.
     """
-    criteria = (cv2.TERM_CRITERIA_EPS | cv2.TERM_CRITERIA_COUNT, 100, 1e-6)
     try:  # at full size first: the texture the coarse levels blur away may be all there is
         cc, warp = cv2.findTransformECC(prev, cur, init.astype(np.float32).copy(),
-                                        cv2.MOTION_AFFINE, criteria, None, 5)
+                                        cv2.MOTION_AFFINE, _ECC_CRITERIA, None, 5)
         if cc >= MIN_CORRELATION:
             return float(cc), warp
         single: tuple[float, np.ndarray] = (float(cc), warp)
@@ -194,7 +194,7 @@ def _ecc_pyramid(prev: np.ndarray, cur: np.ndarray, init: np.ndarray, n: int):
     best: tuple[float, np.ndarray] = (0.0, init)
     for level, (a, b) in enumerate(reversed(levels)):
         try:
-            cc, warp = cv2.findTransformECC(a, b, warp, cv2.MOTION_AFFINE, criteria, None, 5)
+            cc, warp = cv2.findTransformECC(a, b, warp, cv2.MOTION_AFFINE, _ECC_CRITERIA, None, 5)
             full = warp.copy()
             full[:, 2] *= 2.0 ** (len(levels) - 1 - level)
             best = (float(cc), full)  # the finest level that converged
@@ -221,13 +221,12 @@ def _check_chain(kept: dict[int, np.ndarray], to_frame: list[np.ndarray],
     bad = []
     verified = 0
     s = np.diag([scale, scale, 1.0])
-    criteria = (cv2.TERM_CRITERIA_EPS | cv2.TERM_CRITERIA_COUNT, 100, 1e-6)
     for i, j in zip(frames, frames[1:]):
         a, b = kept[i], kept[j]
         chain = s @ to_frame[j] @ np.linalg.inv(to_frame[i]) @ np.linalg.inv(s)  # small px
         try:
             cc, warp = cv2.findTransformECC(a, b, chain[:2].astype(np.float32), cv2.MOTION_AFFINE,
-                                            criteria, None, 5)
+                                            _ECC_CRITERIA, None, 5)
         except cv2.error:
             continue
         if cc < MIN_CORRELATION:
