@@ -67,8 +67,16 @@ def polygon_mask(polygons_px, shape: tuple[int, int]) -> np.ndarray:
     if isinstance(polygons_px, np.ndarray) and polygons_px.ndim == 2:
         polygons_px = [polygons_px]
     mask = np.zeros(shape, np.uint8)
-    pts = [np.round(np.asarray(p, np.float64) * (1 << _SHIFT)).astype(np.int32) for p in polygons_px]
-    pts = [p for p in pts if len(p) >= 3]
+    h, w = shape
+    pts = []
+    for p in polygons_px:
+        p = np.asarray(p, np.float64).reshape(-1, 2)
+        # a polygon wholly outside the image (a part beyond the field) adds nothing, and
+        # its far coordinates would overflow OpenCV's fixed point
+        if (len(p) < 3 or not np.isfinite(p).all() or p[:, 0].max() < -1 or p[:, 1].max() < -1
+                or p[:, 0].min() > w or p[:, 1].min() > h):
+            continue
+        pts.append(np.round(p * (1 << _SHIFT)).astype(np.int32))
     if pts:
         cv2.fillPoly(mask, pts, 1, lineType=cv2.LINE_8, shift=_SHIFT)
     return mask.astype(bool)
