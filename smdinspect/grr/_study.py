@@ -26,6 +26,7 @@ from typing import Any, Callable, Sequence
 import numpy as np
 
 from ..errors import BoardNotLocatedError, InputError
+from ..inspect._spc_report import METRICS as SPC_METRICS
 from ._anova import GaugeRR, gauge_rr, rating
 
 __all__ = [
@@ -40,13 +41,10 @@ __all__ = [
 
 log = logging.getLogger(__name__)
 
-#: metric → (key in report.json "measured", unit, label). Only the max height has a
-#: tolerance band (the joint's min/max height), so only it gets %GR&R of tolerance.
-GRR_METRICS = {
-    "max_height_mm": ("max_height_mm", "mm", "max height"),
-    "volume_mm3": ("volume_mm3", "mm3", "volume"),
-    "area_mm2": ("area_mm2", "mm2", "area"),
-}
+#: metric → (key in report.json "measured", unit, label): the metrics SPC charts. Only
+#: the max height has a tolerance band (the joint's min/max height), so only it gets
+#: %GR&R of tolerance.
+GRR_METRICS = SPC_METRICS
 
 
 @dataclass(frozen=True)

@@ -1037,11 +1037,8 @@ def noise_focus_spread(operator: str, window_px: int, threshold: float = 0.0,
     window sums window_px² independent responses); a pre-filter correlates neighbouring
     responses, so fewer independent ones are summed and a noise-only curve can fake a
     larger peak-to-floor ratio (the confidence's noise test scales with it)."""
-    rng = np.random.default_rng(1)
-    g = prefilter((128.0 + rng.standard_normal((192, 192))).astype(np.float32), prefilter_px)
-    f = focus_measure(g, operator=operator, window_px=window_px, threshold=threshold)
-    m = window_px // 2 + 8
-    f = f[m:-m, m:-m].astype(np.float64)
+    f = _noise_focus_sample(operator, window_px, threshold, prefilter_px, side=192, seed=1,
+                            margin=8).astype(np.float64)
     return float(f.std() / f.mean()) if f.mean() > 0 else 0.0
 
 
@@ -1054,8 +1051,16 @@ def noise_focus(operator: str, window_px: int, threshold: float = 0.0,
     An energy operator's noise response scales as σ², an amplitude one's as σ
     (``FocusOperator.curve_power``); with a threshold the scaling is only approximate.
     """
-    rng = np.random.default_rng(0)
-    g = prefilter((128.0 + rng.standard_normal((96, 96))).astype(np.float32), prefilter_px)
+    return float(np.median(_noise_focus_sample(operator, window_px, threshold, prefilter_px,
+                                               side=96, seed=0, margin=4)))
+
+
+def _noise_focus_sample(operator: str, window_px: int, threshold: float, prefilter_px: float,
+                        *, side: int, seed: int, margin: int) -> np.ndarray:
+    """Focus measure of a ``side``² frame of white noise of σ = 1 around a mid grey (after
+    the pre-filter), without the ``margin`` + half-window border the window reflects."""
+    rng = np.random.default_rng(seed)
+    g = prefilter((128.0 + rng.standard_normal((side, side))).astype(np.float32), prefilter_px)
     f = focus_measure(g, operator=operator, window_px=window_px, threshold=threshold)
-    m = window_px // 2 + 4
-    return float(np.median(f[m:-m, m:-m]))
+    m = window_px // 2 + margin
+    return f[m:-m, m:-m]
