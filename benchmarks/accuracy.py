@@ -17,6 +17,10 @@ Then our own renderer:
   for each peak fit, in steps Δd;
 * demo and dense boards (20 µm/px): coverage, median |error| and RMSE on confident
   pixels, in steps;
+* randomised boards (``random_board_case``, test seeds 10000-10003 on the demo and dense
+  boards: defects, finishes, lighting, placements, one lens in four ordinary with
+  --align): coverage and RMSE on reliable pixels, worst and pooled (goal RMSE
+  <= 0.5 Δd at >= 85 % coverage) and the share of reliable pixels off by more than 1 Δd;
 * defect-free boards through the whole pipeline (reconstruct + inspect): median of
   measured − true max joint height, chips and gull-wings apart.
 
@@ -176,9 +180,46 @@ def independent_goals(tmp: Path) -> None:
               "noise-dominated by design)")
 
 
+def random_boards(tmp: Path, seeds=range(10000, 10004)) -> None:
+    """SFF-level accuracy on randomised boards (test seeds, never tuned on)."""
+    from smdinspect.inspect import load_board
+    from smdinspect.synth import Lighting
+    from smdinspect.synth._board_scene import random_board_case, scene_kwargs
+
+    rows, sq, n_rel, n_all, n_far = [], 0.0, 0, 0, 0
+    for name in ("demo_board", "dense_board"):
+        board = load_board(ROOT / "references" / f"{name}.json")
+        for seed in seeds:
+            case = random_board_case(board, seed)
+            scene, _ = board_scene(case["board"], **scene_kwargs(case))
+            optics = Optics.for_pixel_size(case["pixel_size_mm"],
+                                           telecentric=case["lens"] == "telecentric")
+            stack = render_stack(scene, _sweep(float(scene.height_mm.max())), optics=optics,
+                                 lighting=Lighting(**case["lighting"]), seed=seed,
+                                 out=tmp / f"{name}-{seed}", previews=False)
+            s = reconstruct(stack, FocusConfig(align=case["lens"] == "ordinary"))
+            e = _errors(s, scene.height_mm)
+            rows.append((f"{name[:-6]}/{seed}/{case['lens'][:4]}", s.coverage,
+                         float(np.sqrt(np.mean(e ** 2))), float(np.mean(np.abs(e) > 1))))
+            sq += float(np.sum(e ** 2))
+            n_rel += e.size
+            n_all += s.reliable.size
+            n_far += int(np.sum(np.abs(e) > 1))
+    print("  " + ", ".join(f"{k} {c * 100:.0f} % {r:.2f}" for k, c, r, _ in rows))
+    worst = max(rows, key=lambda row: row[2])
+    pooled, cover = np.sqrt(sq / max(n_rel, 1)), n_rel / max(n_all, 1)
+    _goal(f"{len(rows)} random boards: pooled RMSE, coverage", f"{pooled:.3f} Δd, {cover * 100:.1f} %",
+          "<= 0.5, >= 85%", pooled <= 0.5 and cover >= 0.85)
+    print(f"    worst board {worst[0]}: RMSE {worst[2]:.3f} Δd at {worst[1] * 100:.1f} %; "
+          f"reliable pixels off by > 1 Δd: {n_far / max(n_rel, 1) * 100:.2f} %")
+
+
 def main() -> None:
     with tempfile.TemporaryDirectory(prefix="smdinspect-accuracy-") as tmp:
         independent_goals(Path(tmp))
+    with tempfile.TemporaryDirectory(prefix="smdinspect-accuracy-") as tmp:
+        print("our renderer, randomised boards (test seeds):")
+        random_boards(Path(tmp))
     with tempfile.TemporaryDirectory(prefix="smdinspect-accuracy-") as tmp:
         tmp = Path(tmp)
         cone = cone_scene(size_px=512, pixel_size_mm=0.015, height_mm=1.6, seed=3)

@@ -113,11 +113,15 @@ def inspection_focus_config():
     0402 fillet, so it would fill a fillet with the height of the body next to it. No
     support check: the top of a low fillet is a band of single reliable pixels that no
     window 5 px away repeats, and a joint is judged on a robust fit over its pad, not on
-    single pixels.
+    single pixels. No own-window check (``own_window_px``): it needs a window smaller than
+    the 5-px one. No gap-spanning depth-edge square (``edge_gap_check``): at the knee of a
+    gull-wing lead it takes the top of the heel fillet too (the heel fit's spread over
+    re-placed sweeps went from 5.0 to 6.7 µm, tests/inspect/test_max_height_repeatability).
     """
     from .sff import FocusConfig
 
-    return FocusConfig(window_px=5, halo_ratio=8.0, coarse_factor=0, support_steps=0)
+    return FocusConfig(window_px=5, halo_ratio=8.0, coarse_factor=0, support_steps=0,
+                       own_window_px=0, edge_gap_check=False)
 
 
 def inspect_stack(

@@ -6,7 +6,7 @@ load them when called.
 
 from ._align import Alignment, estimate_alignment
 from ._config import FitMethod, FocusConfig
-from ._confidence import confidence_map, unsupported_mask
+from ._confidence import borrowed_mask, confidence_map, depth_edge_mask, unsupported_mask
 from ._depth import PeakFit, PeakTracker, centroid_correction, fit_peaks
 from ._export import (
     height_field_mesh,
@@ -31,8 +31,10 @@ __all__ = [
     "PeakTracker",
     "Surface",
     "band_powers",
+    "borrowed_mask",
     "centroid_correction",
     "confidence_map",
+    "depth_edge_mask",
     "estimate_alignment",
     "fit_peaks",
     "focus_measure",

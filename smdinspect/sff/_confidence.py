@@ -46,7 +46,7 @@ import numpy as np
 
 from ._depth import PeakFit
 
-__all__ = ["blur_px_per_frame", "confidence_map", "defocus_halo_mask", "depth_edge_mask",
+__all__ = ["blur_px_per_frame", "borrowed_mask", "confidence_map", "defocus_halo_mask", "depth_edge_mask",
            "halo_mask", "unsupported_mask"]
 
 R_LOW_DB, R_HIGH_DB = 14.0, 26.0
@@ -54,6 +54,9 @@ WIDTH_OK, WIDTH_BAD = 2.0, 4.0
 AMBIG_OK, AMBIG_BAD = 0.35, 0.70
 SECOND_OK, SECOND_BAD = 0.15, 0.35
 SNR_BAD, SNR_OK = 1.2, 2.2
+#: Below this share of its own peak (above the floor), a small window centred on the
+#: pixel says the main window's peak frame is not where the pixel's own texture is sharp.
+OWN_SHARE_MIN = 0.2
 
 
 def _ramp(x: np.ndarray, lo: float, hi: float) -> np.ndarray:
@@ -127,8 +130,26 @@ def confidence_cues(fit: PeakFit, *, window_px: int = 9,
             "noise": _ramp(snr, SNR_BAD, SNR_OK)}
 
 
+def borrowed_mask(share: np.ndarray, ratio: np.ndarray, *, own_px: int,
+                  noise_gain: float = 1.0) -> np.ndarray:
+    """(H, W) bool: pixels whose focus peak was borrowed from a neighbour.
+
+    The main window sums the focus response of window² pixels; next to a sharp edge
+    (a body's rim, a termination's top) the edge's response outweighs the pixel's own
+    weak texture and the window peaks where the edge is in focus. A small ``own_px``
+    window centred on the pixel leaves the edge out: when its own curve is clearly
+    peaked (its peak-to-floor ratio, scaled like the noise test to its window, at least
+    ``SNR_OK``) but it has less than ``OWN_SHARE_MIN`` of that peak at the main
+    window's peak frame (``share``, :meth:`PeakTracker.own_share`), the two windows
+    see different depths and the main one's is not the pixel's. A noise-dominated small
+    window proves nothing and vetoes nothing.
+    """
+    scaled = ratio * np.float32(own_px / 9.0 / noise_gain)
+    return (share < OWN_SHARE_MIN) & (scaled >= SNR_OK)
+
+
 def depth_edge_mask(height_mm: np.ndarray, reliable: np.ndarray, *, jump_mm: float,
-                    radius_px: int, span_px: int = 5) -> np.ndarray:
+                    radius_px: int, span_px: int = 5, wide_span_px: int = 0) -> np.ndarray:
     """(H, W) bool: pixels within ``radius_px`` of a height step, on its high side.
 
     A step is where the reliable heights inside a ``span_px`` square differ by more than
@@ -137,23 +158,39 @@ def depth_edge_mask(height_mm: np.ndarray, reliable: np.ndarray, *, jump_mm: flo
     take the *high* side's height, so only pixels above the level of a step within
     ``radius_px`` (the highest such level) are flagged: the correctly measured low side,
     a fillet at the foot of a termination, stays.
+
+    The pixels right at a step are often unreliable already (their curves mix the two
+    depths), and a gap of unreliable pixels as wide as the square hides the step from
+    it while the bled band beyond the gap stays reliable. With ``wide_span_px`` a
+    second square of that side looks across such gaps, for a rise of more than
+    ``jump_mm`` · wide/span (the same slope: a steep fillet is no more a step in the
+    wide square than in the narrow one).
     """
     import cv2
 
     h = height_mm.astype(np.float32)
     up = np.where(reliable, h, -np.inf).astype(np.float32)
     down = np.where(reliable, h, np.inf).astype(np.float32)
-    square = np.ones((span_px, span_px), np.uint8)
+    level = np.full(h.shape, -np.inf, np.float32)
+    spans = [(span_px, jump_mm)]
+    if wide_span_px > span_px:
+        spans.append((wide_span_px, jump_mm * wide_span_px / span_px))
     with np.errstate(invalid="ignore", over="ignore"):
-        hi, lo = cv2.dilate(up, square), cv2.erode(down, square)
-        step = reliable & ((hi - lo) > jump_mm)
-        if not step.any():
-            return step
-        level = np.where(step, 0.5 * (hi + lo), -np.inf).astype(np.float32)
+        for side, jump in spans:
+            square = np.ones((side, side), np.uint8)
+            hi = cv2.dilate(up, square, borderType=cv2.BORDER_REPLICATE)
+            lo = cv2.erode(down, square, borderType=cv2.BORDER_REPLICATE)
+            step = reliable & ((hi - lo) > jump)
+            np.maximum(level, np.where(step, 0.5 * (hi + lo), -np.inf).astype(np.float32),
+                       out=level)
+        if not np.isfinite(level).any():
+            return np.zeros(h.shape, bool)
         if radius_px > 0:
             disk = cv2.getStructuringElement(cv2.MORPH_ELLIPSE,
                                              (2 * radius_px + 1, 2 * radius_px + 1))
-            level = cv2.dilate(level, disk)
+            # replicated border: OpenCV's constant border for dilate is −FLT_MAX, a
+            # finite level under every pixel within the radius of the image's edge
+            level = cv2.dilate(level, disk, borderType=cv2.BORDER_REPLICATE)
         return np.isfinite(level) & (h > level)
 
 

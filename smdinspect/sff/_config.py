@@ -85,6 +85,23 @@ class FocusConfig:
         under its centre: move each fine-level height by the local slope times the
         centroid's offset (operators that sum a per-pixel response only; see
         :func:`smdinspect.sff.centroid_correction`). Default on.
+    edge_gap_check : bool
+        The depth-edge check also looks across a gap of unreliable pixels at a step:
+        a second square of ``window_px + 2`` px for a rise of the same slope
+        (``edge_jump_steps`` per 5 px; see :func:`smdinspect.sff.depth_edge_mask`).
+        Default on.
+    own_window_px : int
+        Side of a small window centred on each pixel whose focus is tracked beside the
+        main one (operators that sum a per-pixel response only). A window on weak
+        texture next to a sharp edge, a body's rim or a termination's top, peaks where
+        that edge is in focus and reads the edge's height: the band of pixels within half
+        a window of the edge takes it. The small window sees the pixel's own texture; a
+        height is made unreliable when the small window's focus there is clearly peaked
+        (its noise test passes) but its focus at the main peak's frame is below
+        :data:`~smdinspect.sff._confidence.OWN_SHARE_MIN` of its peak over the floor: the
+        height was borrowed from a neighbour. Such pixels are not filled from the coarse
+        level either. 0 turns the check off, and so does a value not below
+        ``window_px``; default 5.
     align : bool
         Register the frames (affine, by ECC) onto the most magnified frame's grid and
         resample their focus measures there; needed for ordinary (non-telecentric)
@@ -105,6 +122,8 @@ class FocusConfig:
     coarse_factor: int = 4
     prefilter_px: float | str = 0.0
     centroid_correction: bool = True
+    own_window_px: int = 5
+    edge_gap_check: bool = True
     align: bool = False
     workers: int = 2
 
@@ -143,6 +162,12 @@ class FocusConfig:
             raise InputError(f"support_steps must be >= 0 (0: off); got {self.support_steps!r}")
         if not isinstance(self.coarse_factor, int) or not 0 <= self.coarse_factor <= 16:
             raise InputError(f"coarse_factor must be an integer in 0..16; got {self.coarse_factor!r}")
+        if not isinstance(self.edge_gap_check, bool):
+            raise InputError(f"edge_gap_check must be true or false; got {self.edge_gap_check!r}")
+        if not isinstance(self.own_window_px, int) or self.own_window_px < 0 or (
+                self.own_window_px and self.own_window_px % 2 == 0):
+            raise InputError(f"own_window_px must be 0 (off) or an odd integer; "
+                             f"got {self.own_window_px!r}")
         if not (self.prefilter_px == "auto" or (
                 isinstance(self.prefilter_px, (int, float)) and not isinstance(self.prefilter_px, bool)
                 and math.isfinite(self.prefilter_px) and 0 <= self.prefilter_px <= 16)):

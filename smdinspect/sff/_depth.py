@@ -77,13 +77,17 @@ class PeakTracker:
         self._finished = False
         #: Σ Mx, Σ My and Σ F over the frames, when update() was given moments
         self.moments: tuple[np.ndarray, np.ndarray, np.ndarray] | None = None
+        #: the small window's focus: (max, min over the frames, value at the best frame),
+        #: when update() was given ``own``
+        self.own: tuple[np.ndarray, np.ndarray, np.ndarray] | None = None
 
-    def update(self, n: int, focus: np.ndarray, moments=None) -> np.ndarray:
+    def update(self, n: int, focus: np.ndarray, moments=None, own=None) -> np.ndarray:
         """Take frame ``n``'s focus measure; return the (H, W) bool mask of new bests.
 
         ``moments`` (Mx, My, window_px), Mx and My of
         :func:`~smdinspect.sff.focus_measure_moments`, if given, are summed with the focus
-        over the frames (:attr:`centroid_px`). The returned mask is
+        over the frames (:attr:`centroid_px`). ``own``, the same frame's focus over a
+        smaller window, is tracked for :meth:`own_share`. The returned mask is
         reused by the next call: copy it to keep it.
         """
         k, size = self.k, 2 * self.k + 1
@@ -100,6 +104,13 @@ class PeakTracker:
                 self.moments = tuple(np.zeros(self.shape, np.float32) for _ in range(3))
             for src, dst in zip((moments[0], moments[1], focus), self.moments):
                 np.add(dst, src, out=dst)
+        if own is not None:
+            if self.own is None:
+                self.own = (np.full(self.shape, -np.inf, np.float32),
+                            np.full(self.shape, np.inf, np.float32), np.zeros(self.shape, np.float32))
+            np.maximum(self.own[0], own, out=self.own[0])
+            np.minimum(self.own[1], own, out=self.own[1])
+            cv2.copyTo(own, mask, self.own[2])
         far = np.less(self.best_idx, n - k, out=self._far)
         np.multiply(focus, far, out=self._scratch)
         np.maximum(self.after, self._scratch, out=self.after)
@@ -151,6 +162,22 @@ class PeakTracker:
         :func:`fit_peaks` has run; :attr:`centroid_px` and :attr:`shape` stay."""
         self.finish()
         self.window = self.best = self.before = self.after = None
+
+    def own_share(self) -> tuple[np.ndarray, np.ndarray] | None:
+        """(share, ratio) float32 of the small window (``update(own=...)``), or None.
+
+        share: the small window's focus at the main curve's best frame above its floor,
+        over its own peak above the floor (1 where both windows peak together);
+        ratio: its peak above the floor over the floor (its noise test's A/b).
+        """
+        if self.own is None:
+            return None
+        top, low, at = self.own
+        span = top - low
+        with np.errstate(divide="ignore", invalid="ignore"):
+            share = np.where(span > 0, (at - low) / span, 1.0).astype(np.float32)
+            ratio = np.where(low > 0, span / low, 0.0).astype(np.float32)
+        return share, ratio
 
     @property
     def centroid_px(self) -> tuple[np.ndarray, np.ndarray] | None:

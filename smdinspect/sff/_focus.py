@@ -876,7 +876,7 @@ def focus_measure(frame, *, operator="sml", window_px=9, threshold=0.0) -> np.nd
     return _OPERATORS[name](g, window_px, float(threshold))
 
 
-def focus_measure_moments(frame, *, operator="sml", window_px=9, threshold=0.0):
+def focus_measure_moments(frame, *, operator="sml", window_px=9, threshold=0.0, own_px=0):
     """The focus measure and the first moments of its per-pixel response over the window.
 
     For the operators that sum a per-pixel response r over the window U
@@ -886,11 +886,14 @@ def focus_measure_moments(frame, *, operator="sml", window_px=9, threshold=0.0):
     slope measures the height under that centroid, not under its centre; the SFF core
     uses the offset to move the height back (``smdinspect.sff.centroid_correction``). For
     every other operator Mx and My are None. Two more separable filters per frame.
+
+    With ``own_px`` > 0 a fourth value is returned: Σ of r over the ``own_px`` square
+    (the same focus measure with a smaller window; None for the other operators).
     """
     name = _operator_name(operator)
     if name not in _THRESHOLDED:
-        return focus_measure(frame, operator=name, window_px=window_px,
-                             threshold=threshold), None, None
+        focus = focus_measure(frame, operator=name, window_px=window_px, threshold=threshold)
+        return (focus, None, None, None) if own_px else (focus, None, None)
     g = _as_float32(frame)
     _check_window(window_px, g.shape)
     _check_threshold(threshold)
@@ -902,6 +905,8 @@ def focus_measure_moments(frame, *, operator="sml", window_px=9, threshold=0.0):
     # sepFilter2D correlates: kernel tap j multiplies r(p + j − h), i.e. offset j − h
     mx = cv2.sepFilter2D(resp, -1, ramp, ones, borderType=_BORDER)
     my = cv2.sepFilter2D(resp, -1, ones, ramp, borderType=_BORDER)
+    if own_px:
+        return focus, mx, my, _window_sum(resp, int(own_px))
     return focus, mx, my
 
 

@@ -15,7 +15,7 @@ from ..errors import InputError
 from ..stack import FocalStack
 from ._align import Alignment, estimate_alignment
 from ._config import FitMethod, FocusConfig
-from ._confidence import (blur_px_per_frame, confidence_cues, confidence_map,
+from ._confidence import (blur_px_per_frame, borrowed_mask, confidence_cues, confidence_map,
                           defocus_halo_mask, depth_edge_mask, unsupported_mask)
 from ._depth import PeakTracker, centroid_correction, fit_peaks
 from ._focus import (FocusOperator, band_powers, focus_measure, focus_measure_moments,
@@ -139,7 +139,9 @@ def reconstruct(
         sigma, modulation = float(config.prefilter_px), None
     first = stack.frames[0].path
     operator = FocusOperator(config.operator)
-    moments_wanted = (config.centroid_correction and operator.uses_threshold
+    own_px = (config.own_window_px
+              if operator.uses_threshold and config.own_window_px < config.window_px else 0)
+    moments_wanted = ((config.centroid_correction or own_px) and operator.uses_threshold
                       and config.fit != FitMethod.ARGMAX)
 
     def load(i: int):
@@ -156,10 +158,12 @@ def reconstruct(
         # σ is in reference pixels; frame i's pixels are larger by 1/scale
         sigma_i = round(sigma * (alignment.scale(i) if alignment is not None else 1.0), 3)
         gray = prefilter(gray, sigma_i)
+        own = None
         if moments_wanted:
-            focus, mx, my = focus_measure_moments(gray, operator=config.operator,
-                                                  window_px=config.window_px,
-                                                  threshold=config.threshold)
+            focus, mx, my, *rest = focus_measure_moments(
+                gray, operator=config.operator, window_px=config.window_px,
+                threshold=config.threshold, own_px=own_px)
+            own = rest[0] if rest else None
         else:
             focus = focus_measure(gray, operator=config.operator, window_px=config.window_px,
                                   threshold=config.threshold)
@@ -175,13 +179,15 @@ def reconstruct(
                 # reference pixels) a frame's own noise floor differs, and a floor that
                 # changes over the sweep pulls every peak towards its higher end.
                 level = (alignment.noise_sigma * norm) ** operator.curve_power
-                own = noise_focus(operator.value, config.window_px, config.threshold,
-                                  sigma_i) * level
-                ref = noise_focus(operator.value, config.window_px, config.threshold,
-                                  round(sigma, 3)) * level
-                focus -= np.float32(own)
-                focus *= np.float32(gain)
-                focus += np.float32(ref)
+                for plane, side in ((focus, config.window_px), (own, own_px)):
+                    if plane is None:
+                        continue
+                    mine = noise_focus(operator.value, side, config.threshold, sigma_i) * level
+                    ref = noise_focus(operator.value, side, config.threshold,
+                                      round(sigma, 3)) * level
+                    plane -= np.float32(mine)
+                    plane *= np.float32(gain)
+                    plane += np.float32(ref)
                 if mx is not None:  # the noise's centroid is the window centre
                     mx *= np.float32(gain)
                     my *= np.float32(gain)
@@ -196,11 +202,13 @@ def reconstruct(
                               cv2.addWeighted(mx, float(inv[1, 0]), my, float(inv[1, 1]), 0.0))
                 mx, my = alignment.warp(mx, i), alignment.warp(my, i)
             focus = alignment.warp(focus, i)
+            if own is not None:
+                own = alignment.warp(own, i)
             image = alignment.warp(image, i)
         small = None
         if config.coarse_factor > 1 and min(focus.shape) >= 8 * config.coarse_factor:
             small = _CoarseLevel.reduce(focus, config.coarse_factor)  # in the worker
-        return image, focus, small, (mx, my, config.window_px)
+        return image, focus, small, (mx, my, config.window_px), own
 
     tracker: PeakTracker | None = None
     coarse: _CoarseLevel | None = None
@@ -214,7 +222,7 @@ def reconstruct(
             while next_i < n and len(pending) < depth:
                 pending.append(pool.submit(load, next_i))
                 next_i += 1
-            image, focus, small, moments = pending.popleft().result()
+            image, focus, small, moments, own = pending.popleft().result()
             if ref_shape is None:
                 ref_shape = image.shape
                 if min(image.shape[:2]) < config.window_px:
@@ -227,15 +235,15 @@ def reconstruct(
                 aif = np.zeros_like(image)
             elif image.shape != ref_shape:
                 raise _mismatch(stack.frames[i].path, image.shape, first, ref_shape)
-            better = tracker.update(i, focus, moments)
+            better = tracker.update(i, focus, moments, own=own)
             if coarse is not None:
                 coarse.tracker.update(i, small)
             cv2.copyTo(image, better.view(np.uint8), aif)
             if progress is not None:
                 progress(i + 1, n)
-        del image, focus, small, moments, better  # the last frame's planes
+        del image, focus, small, moments, own, better  # the last frame's planes
     t_stream = time.perf_counter() - t0
-    centroid = tracker.centroid_px
+    centroid = tracker.centroid_px if config.centroid_correction else None
     tracker.moments = None  # summed into the centroid
 
     # a pre-filtered noise is correlated: the noise test must ask for a larger peak
@@ -246,7 +254,7 @@ def reconstruct(
                          / noise_focus_spread(operator.value, config.window_px, config.threshold))
     fit, confidence, halo, beyond = _level(tracker, z_mm, config, window_px=config.window_px,
                                            halo_radius_px=config.window_px + 2,
-                                           noise_gain=noise_gain)
+                                           noise_gain=noise_gain, own_px=own_px)
     meta: dict = {}
     field = np.ones(tracker.shape, bool)
     if alignment is not None:
@@ -285,8 +293,9 @@ def reconstruct(
             confidence[bad] = 0.0
     if config.edge_jump_steps > 0:
         jump = config.edge_jump_steps * stack.step_mm
+        wide = config.window_px + 2 if config.edge_gap_check else 0
         edges = depth_edge_mask(height, confidence >= config.min_confidence, jump_mm=jump,
-                                radius_px=config.window_px // 2 + 1)
+                                radius_px=config.window_px // 2 + 1, wide_span_px=wide)
         if from_coarse is not None and from_coarse.any():
             # a coarse window bleeds the higher side over half its width
             edges |= from_coarse & depth_edge_mask(
@@ -352,12 +361,14 @@ def _prefetch(read: Callable[[int], np.ndarray], n: int, pool: ThreadPoolExecuto
 
 
 def _level(tracker: PeakTracker, z_mm: np.ndarray, config: FocusConfig, *, window_px: int,
-           halo_radius_px: int, noise_gain: float = 1.0):
+           halo_radius_px: int, noise_gain: float = 1.0, own_px: int = 0):
     """Fit one level's peaks and judge them: (fit, confidence, halo mask, beyond).
 
     ``beyond`` (int8) is −1 / +1 where the curve is sharpest on the first / last frame
     and passes the noise and second-mode tests (clearly textured, falling away from the
-    end): the surface is at or beyond that end of the sweep.
+    end): the surface is at or beyond that end of the sweep. The halo mask includes the
+    heights borrowed from a neighbour (:func:`borrowed_mask`, when the tracker has the
+    ``own_px`` window's focus).
     """
     tracker.finish()
     fit = fit_peaks(tracker, z_mm, method=config.fit, workers=config.workers,
@@ -378,7 +389,14 @@ def _level(tracker: PeakTracker, z_mm: np.ndarray, config: FocusConfig, *, windo
                                  (confidence >= config.min_confidence) | first | last,
                                  base_radius_px=halo_radius_px, blur_px_per_frame=kappa,
                                  ratio=config.halo_ratio, n_frames=len(z_mm), power=power)
-        confidence[halo] = 0.0
+    own = tracker.own_share()
+    if own is not None and own_px:
+        # also where the fine peak is unreliable anyway: the coarse level's wider
+        # window would borrow the same edge's height for it
+        borrowed = borrowed_mask(*own, own_px=own_px, noise_gain=noise_gain)
+        tracker.own = None
+        halo |= borrowed
+    confidence[halo] = 0.0
     clear = (cues["noise"] >= 0.5) & (cues["second_mode"] >= 0.5) & ~halo
     beyond = (np.where(first & clear, -1, 0) + np.where(last & clear, 1, 0)).astype(np.int8)
     return fit, confidence, halo, beyond

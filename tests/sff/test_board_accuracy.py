@@ -2,8 +2,9 @@
 
 Real boards have weak solder-mask texture, specular metal and component edges whose
 defocused blur bleeds over their surroundings; the default synthetic board has all of
-them. Issue criteria: on confident pixels median |error| <= 0.1 step and RMSE <= 1 step
-at a coverage >= 0.8.
+them. Criteria: on confident pixels median |error| <= 0.1 step and RMSE <= 0.5 step at
+a coverage >= 0.8 (measured 0.31 / 0.21 step at 90 / 88 %; the benchmark's goal is
+0.5 step at 85 %).
 """
 
 import numpy as np
@@ -41,7 +42,7 @@ def test_board_heights_on_confident_pixels(board):
     err = (s.height_mm - scene.height_mm)[s.reliable] / STEP
     assert s.coverage >= 0.8, s.coverage
     assert np.median(np.abs(err)) <= 0.1
-    assert np.sqrt(np.mean(err**2)) <= 1.0
+    assert np.sqrt(np.mean(err**2)) <= 0.5
 
 
 def test_edge_check_is_what_removes_bleeding(board):
@@ -50,3 +51,18 @@ def test_edge_check_is_what_removes_bleeding(board):
     s = reconstruct(stack, FocusConfig(edge_jump_steps=0))
     err = (s.height_mm - scene.height_mm)[s.reliable] / STEP
     assert np.mean(np.abs(err) > 3) > 0.003
+
+
+def test_own_window_check_removes_borrowed_heights(board):
+    """Without the small-window check, weak texture next to a body's or termination's
+    edge keeps the edge's height (measured: 1.7 / 1.3 per mille of the reliable pixels
+    off by more than 3 steps against 0.9 / 0.6 with it, RMSE 0.48 / 0.29 step)."""
+    scene, stack = board
+    on = reconstruct(stack, FocusConfig())
+    off = reconstruct(stack, FocusConfig(own_window_px=0))
+
+    def far(s):
+        return np.mean(np.abs(s.height_mm - scene.height_mm)[s.reliable] / STEP > 3)
+
+    assert far(off) > 1.5 * far(on), (far(off), far(on))
+    assert on.coverage > off.coverage - 0.01  # the check costs little coverage

@@ -1,0 +1,56 @@
+"""Heights borrowed from a neighbouring edge: the small-window check and the depth-edge
+mask's gap-spanning pass, on exact curves and height maps."""
+
+import numpy as np
+
+from smdinspect.sff import PeakTracker, borrowed_mask, depth_edge_mask
+
+
+def _curves(n, peak, amp, floor=1.0, width=1.5):
+    z = np.arange(n, dtype=np.float32)[:, None, None]
+    return (floor + amp * np.exp(-((z - peak) ** 2) / (2 * width**2))).astype(np.float32)
+
+
+def test_own_share_is_the_small_windows_focus_at_the_main_peak():
+    n = 20
+    # main window: peaks at frame 15 everywhere (an edge's height);
+    # small window: column 0 peaks at 15 too, column 1 at frame 4 (its own texture),
+    # column 2 at frame 4 but only noise-high, column 3 flat (textureless)
+    main = _curves(n, np.full((1, 4), 15.0), np.full((1, 4), 50.0))
+    small = np.concatenate([_curves(n, np.array([[15.0]]), np.array([[20.0]])),
+                            _curves(n, np.array([[4.0]]), np.array([[20.0]])),
+                            _curves(n, np.array([[4.0]]), np.array([[0.5]])),
+                            np.ones((n, 1, 1), np.float32)], axis=2)
+    tr = PeakTracker((1, 4), n, half_width=3)
+    for i in range(n):
+        tr.update(i, main[i].copy(), own=small[i].copy())
+    share, ratio = tr.own_share()
+    assert share[0, 0] > 0.99 and share[0, 1] < 0.01 and share[0, 2] < 0.01
+    assert share[0, 3] == 1.0  # no span: nothing to say
+    np.testing.assert_allclose(ratio[0, :2], 20.0, rtol=1e-3)
+    flags = borrowed_mask(share, ratio, own_px=5)
+    # only the clearly peaked small window that disagrees vetoes the height
+    assert flags.tolist() == [[False, True, False, False]]
+    # a noise pre-filter's correlated noise asks for a larger peak
+    assert not borrowed_mask(share, ratio, own_px=5, noise_gain=10.0).any()
+
+
+def test_depth_edge_mask_spans_a_gap_of_unreliable_pixels():
+    """A low region, a gap of unreliable pixels at the step, then a band bled to the
+    high side's height: the 5-px square sees no step across a 4-px gap, the wide one
+    does; a steep but continuous slope is not a step in either."""
+    step = 0.05
+    row = np.r_[np.full(20, 0.02), np.full(4, np.nan), np.full(20, 1.2)].astype(np.float32)
+    h = np.tile(row, (9, 1))
+    ok = np.isfinite(h)
+    h = np.nan_to_num(h)
+    narrow = depth_edge_mask(h, ok, jump_mm=3 * step, radius_px=5)
+    wide = depth_edge_mask(h, ok, jump_mm=3 * step, radius_px=5, wide_span_px=11)
+    assert not narrow.any()
+    band = wide[4]
+    assert band[24:27].all()  # the high side next to the gap
+    assert not band[:20].any()  # the low side keeps its heights
+    assert not band[32:].any()  # beyond the radius nothing moves
+    slope = np.tile(np.arange(60, dtype=np.float32) * 0.5 * step, (9, 1))  # 0.5 step/px
+    assert not depth_edge_mask(slope, np.ones_like(slope, bool), jump_mm=3 * step,
+                               radius_px=5, wide_span_px=11).any()
