@@ -37,6 +37,9 @@ def add_stack_arguments(p: argparse.ArgumentParser) -> None:
                    help="Gaussian σ (px) smoothing each frame before the focus measure, against "
                         "sensor noise; 'auto' picks it from the sweep's noise-only frequencies "
                         "(default 0: off)")
+    p.add_argument("--coarse-levels", type=int, default=1, choices=(1, 2, 3), metavar="N",
+                   help="coarse focus levels (4x, 16x, 64x blocks) filling what finer ones left "
+                        "unreliable; 2 helps smooth, weakly textured parts (default 1)")
     p.add_argument("--workers", type=int, default=2, help="decode/focus threads (default 2)")
     p.add_argument("--keep-unreliable", action="store_true",
                    help="keep unreliable points in cloud.ply and the mesh")
@@ -56,7 +59,8 @@ def focus_config_from(args: argparse.Namespace):
             raise InputError(f"--prefilter must be 'auto' or a number of pixels; got {prefilter!r}") from None
     return FocusConfig(operator=args.operator, window_px=args.window_px, fit=args.fit,
                        fit_half_width=args.fit_half_width, min_confidence=args.min_confidence,
-                       prefilter_px=prefilter, align=args.align, workers=args.workers)
+                       prefilter_px=prefilter, align=args.align, workers=args.workers,
+                       coarse_levels=getattr(args, "coarse_levels", 1))
 
 
 def register(sub: argparse._SubParsersAction) -> None:

@@ -69,6 +69,10 @@ class FocusConfig:
         fine level is unreliable for want of texture, a reliable coarse height is used
         (smoother, lower lateral resolution; never where the fine level found a halo).
         0 or 1 turns it off. Default 4.
+    coarse_levels : int
+        Coarse levels of factors ``coarse_factor``, ``coarse_factor``², …: each fills
+        what the finer ones left unreliable (a level needs 8 blocks on the frame's
+        shorter side). Default 1.
     prefilter_px : float or "auto"
         σ (px) of a Gaussian applied to each grey frame before the focus operator, to keep
         a derivative operator off the frequencies where the sensor noise outweighs the
@@ -120,6 +124,7 @@ class FocusConfig:
     halo_ratio: float = 4.0
     support_steps: float = 1.5
     coarse_factor: int = 4
+    coarse_levels: int = 1
     prefilter_px: float | str = 0.0
     centroid_correction: bool = True
     own_window_px: int = 5
@@ -168,6 +173,8 @@ class FocusConfig:
                 self.own_window_px and self.own_window_px % 2 == 0):
             raise InputError(f"own_window_px must be 0 (off) or an odd integer; "
                              f"got {self.own_window_px!r}")
+        if not isinstance(self.coarse_levels, int) or not 1 <= self.coarse_levels <= 3:
+            raise InputError(f"coarse_levels must be an integer in 1..3; got {self.coarse_levels!r}")
         if not (self.prefilter_px == "auto" or (
                 isinstance(self.prefilter_px, (int, float)) and not isinstance(self.prefilter_px, bool)
                 and math.isfinite(self.prefilter_px) and 0 <= self.prefilter_px <= 16)):

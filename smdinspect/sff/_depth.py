@@ -180,6 +180,14 @@ class PeakTracker:
         return share, ratio
 
     @property
+    def texture_energy(self) -> np.ndarray | None:
+        """(H, W) float32: each window's focus summed over the frames above its floor
+        (the texture the window holds, whatever its defocus), or None without moments."""
+        if self.moments is None:
+            return None
+        return np.maximum(self.moments[2] - np.float32(self.n_frames) * self.floor, 0)
+
+    @property
     def centroid_px(self) -> tuple[np.ndarray, np.ndarray] | None:
         """(dx, dy) float32: offset (px) of the centroid of each window's focus energy from
         its centre, or None when update() had no moments.

@@ -205,13 +205,12 @@ def reconstruct(
             if own is not None:
                 own = alignment.warp(own, i)
             image = alignment.warp(image, i)
-        small = None
-        if config.coarse_factor > 1 and min(focus.shape) >= 8 * config.coarse_factor:
-            small = _CoarseLevel.reduce(focus, config.coarse_factor)  # in the worker
+        small = [_CoarseLevel.reduce(focus, f)  # in the worker
+                 for f in _coarse_factors(config, focus.shape)]
         return image, focus, small, (mx, my, config.window_px), own
 
     tracker: PeakTracker | None = None
-    coarse: _CoarseLevel | None = None
+    coarse: list[_CoarseLevel] = []
     aif = None
     ref_shape = None
     depth = config.workers + 2  # frames in flight; bounds memory
@@ -230,21 +229,22 @@ def reconstruct(
                         f"window_px {config.window_px} is larger than the frames "
                         f"({image.shape[1]}x{image.shape[0]} px)")
                 tracker = PeakTracker(image.shape[:2], n, half_width=config.fit_half_width)
-                if small is not None:
-                    coarse = _CoarseLevel(image.shape[:2], n, config)
+                coarse = [_CoarseLevel(image.shape[:2], n, config, f)
+                          for f in _coarse_factors(config, image.shape[:2])]
                 aif = np.zeros_like(image)
             elif image.shape != ref_shape:
                 raise _mismatch(stack.frames[i].path, image.shape, first, ref_shape)
             better = tracker.update(i, focus, moments, own=own)
-            if coarse is not None:
-                coarse.tracker.update(i, small)
+            for level, plane in zip(coarse, small):
+                level.tracker.update(i, plane)
             cv2.copyTo(image, better.view(np.uint8), aif)
             if progress is not None:
                 progress(i + 1, n)
         del image, focus, small, moments, own, better  # the last frame's planes
     t_stream = time.perf_counter() - t0
     centroid = tracker.centroid_px if config.centroid_correction else None
-    tracker.moments = None  # summed into the centroid
+    energy = tracker.texture_energy if coarse else None
+    tracker.moments = None  # summed into the centroid and the energy
 
     # a pre-filtered noise is correlated: the noise test must ask for a larger peak
     noise_gain = 1.0
@@ -267,11 +267,27 @@ def reconstruct(
                                      centroid, window_px=config.window_px,
                                      max_mm=abs(stack.step_mm),
                                      width_steps=fit.sigma_mm / np.float32(abs(stack.step_mm)))
-    from_coarse = None
-    if coarse is not None:
-        height, confidence, from_coarse = coarse.merge(height, confidence, halo, field,
-                                                       z_mm, config, noise_gain=noise_gain)
-        meta["coarse_fraction"] = round(float(from_coarse.mean()), 4)
+    # coarse levels fill, finest first, what the finer ones left unreliable
+    filled: list[np.ndarray] = []
+    for level in coarse:
+        before_h, before_c = height, confidence
+        height, confidence, use = level.merge(height, confidence, halo, field, z_mm, config,
+                                              noise_gain=noise_gain, energy=energy)
+        if filled and use.any() and config.edge_jump_steps > 0:
+            # a second coarse level's window spans whole parts: where its fills meet a
+            # height step, the fill is the suspect, not the finer level's pixels
+            near = _near_step(height, confidence >= config.min_confidence,
+                              jump_mm=config.edge_jump_steps * abs(stack.step_mm),
+                              radius_px=level.window_px // 2) & use
+            height = np.where(near, before_h, height)
+            confidence = np.where(near, before_c, confidence)
+            use &= ~near
+        filled.append(use)
+    del energy
+    if coarse:
+        meta["coarse_fraction"] = round(float(sum(int(u.sum()) for u in filled) / height.size), 4)
+        meta["coarse_fractions"] = {str(lv.factor): round(float(u.mean()), 4)
+                                    for lv, u in zip(coarse, filled)}
     if alignment is not None and not alignment.trusted:
         # a wrong registration puts a frame's focus on the wrong pixels: a height is only
         # as good as the alignment of the frames around its peak
@@ -296,20 +312,20 @@ def reconstruct(
         wide = config.window_px + 2 if config.edge_gap_check else 0
         edges = depth_edge_mask(height, confidence >= config.min_confidence, jump_mm=jump,
                                 radius_px=config.window_px // 2 + 1, wide_span_px=wide)
-        if from_coarse is not None and from_coarse.any():
-            # a coarse window bleeds the higher side over half its width
-            edges |= from_coarse & depth_edge_mask(
-                height, confidence >= config.min_confidence, jump_mm=jump,
-                radius_px=coarse.window_px // 2 + 1)
+        for level, use in zip(coarse, filled):
+            if use.any():  # a coarse window bleeds the higher side over half its width
+                edges |= use & depth_edge_mask(
+                    height, confidence >= config.min_confidence, jump_mm=jump,
+                    radius_px=level.window_px // 2 + 1)
         confidence[edges] = 0.0
     reliable = confidence >= config.min_confidence
     if config.support_steps > 0:
         # independent windows must corroborate a height (kills isolated noise peaks)
         tol = config.support_steps * stack.step_mm
         lonely = unsupported_mask(height, reliable, distance_px=config.window_px, tol_mm=tol)
-        if from_coarse is not None:
-            lonely = (lonely & ~from_coarse) | (from_coarse & unsupported_mask(
-                height, reliable, distance_px=coarse.window_px, tol_mm=tol))
+        for level, use in zip(coarse, filled):
+            lonely = (lonely & ~use) | (use & unsupported_mask(
+                height, reliable, distance_px=level.window_px, tol_mm=tol))
         confidence[lonely] = 0.0
         reliable &= ~lonely
     t_total = time.perf_counter() - t0
@@ -402,15 +418,25 @@ def _level(tracker: PeakTracker, z_mm: np.ndarray, config: FocusConfig, *, windo
     return fit, confidence, halo, beyond
 
 
+def _coarse_factors(config: FocusConfig, shape) -> list[int]:
+    """Block factors of the coarse levels (:attr:`FocusConfig.coarse_factor` to the powers
+    1 .. ``coarse_levels``) that fit the frame (at least 8 blocks on its shorter side)."""
+    f = config.coarse_factor
+    if f <= 1:
+        return []
+    return [f ** k for k in range(1, config.coarse_levels + 1) if min(shape) >= 8 * f ** k]
+
+
 class _CoarseLevel:
-    """The coarse focus level of :attr:`FocusConfig.coarse_factor`: every frame's focus
+    """A coarse focus level (:attr:`FocusConfig.coarse_factor`): every frame's focus
     block-averaged by the factor and box-filtered 5 × 5 on the reduced grid, its peaks
     tracked there (1/factor² of the fine level's memory and time)."""
 
     BOX = 5
 
-    def __init__(self, shape: tuple[int, int], n_frames: int, config: FocusConfig) -> None:
-        f = config.coarse_factor
+    def __init__(self, shape: tuple[int, int], n_frames: int, config: FocusConfig,
+                 factor: int) -> None:
+        f = factor
         self.shape = shape
         self.small = (shape[0] // f, shape[1] // f)
         self.factor = f
@@ -427,9 +453,18 @@ class _CoarseLevel:
 
     def merge(self, height: np.ndarray, confidence: np.ndarray, halo: np.ndarray,
               field: np.ndarray, z_mm: np.ndarray, config: FocusConfig, *,
-              noise_gain: float = 1.0):
-        """Fill the fine level's unreliable pixels inside ``field`` (except its ``halo``
-        pixels) from reliable coarse ones; returns (height, confidence, from_coarse)."""
+              noise_gain: float = 1.0, energy: np.ndarray | None = None):
+        """Fill the finer levels' unreliable pixels inside ``field`` (except the fine
+        level's ``halo`` pixels) from reliable coarse ones; returns (height, confidence,
+        the mask of the pixels filled).
+
+        With the fine level's ``energy`` (:attr:`PeakTracker.texture_energy`) a pixel is
+        filled only where the texture of its coarse footprint is not all to one side:
+        the footprint's energy centroid must lie within a quarter of the footprint of
+        the pixel. A coarse window reads the height where its texture is; a pixel whose
+        footprint has texture only on one side (a textureless region next to a textured
+        one) would take the textured side's height, which is not a measurement of it.
+        """
         # the noise test scales with the footprint; the halo radius is the footprint's
         fit, conf, _, _ = _level(self.tracker, z_mm, config, window_px=self.window_px,
                               halo_radius_px=-(-(self.window_px + 2) // self.factor),
@@ -449,9 +484,46 @@ class _CoarseLevel:
             c_up = cv2.resize(np.where(ok, conf, 0).astype(np.float32), size,
                               interpolation=cv2.INTER_LINEAR) / support
         use = (confidence < config.min_confidence) & ~halo & field & (support >= 0.5)
+        if energy is not None:
+            # a coarse window reads the height under its energy centroid: a footprint
+            # whose texture is all to one side reads that side's height
+            dx, dy = _energy_offset_px(energy, self.window_px)
+            use &= np.hypot(dx, dy) <= self.window_px / 4.0
         height = np.where(use, h_up, height).astype(np.float32)
         confidence = np.where(use, c_up, confidence).astype(np.float32)
         return height, confidence, use
+
+
+def _energy_offset_px(energy: np.ndarray, window_px: int) -> tuple[np.ndarray, np.ndarray]:
+    """(dx, dy) float32: offset (px) of the ``energy`` centroid over each pixel's
+    ``window_px`` square from the pixel (the window's side where it has no energy)."""
+    e = energy.astype(np.float64)
+    h, w = e.shape
+    size = (window_px, window_px)
+    box = cv2.boxFilter(e, -1, size, normalize=False, borderType=cv2.BORDER_CONSTANT)
+    xs = np.arange(w, dtype=np.float64)[None, :]
+    ys = np.arange(h, dtype=np.float64)[:, None]
+    with np.errstate(divide="ignore", invalid="ignore"):
+        dx = cv2.boxFilter(e * xs, -1, size, normalize=False, borderType=cv2.BORDER_CONSTANT) / box - xs
+        dy = cv2.boxFilter(e * ys, -1, size, normalize=False, borderType=cv2.BORDER_CONSTANT) / box - ys
+    none = ~(box > 0)
+    dx[none] = window_px
+    dy[none] = window_px
+    return dx.astype(np.float32), dy.astype(np.float32)
+
+
+def _near_step(height, reliable, *, jump_mm: float, radius_px: int, span_px: int = 5):
+    """Pixels within ``radius_px`` of a height step (either side; see depth_edge_mask)."""
+    h = height.astype(np.float32)
+    sq = np.ones((span_px, span_px), np.uint8)
+    hi = cv2.dilate(np.where(reliable, h, -np.inf).astype(np.float32), sq,
+                    borderType=cv2.BORDER_REPLICATE)
+    lo = cv2.erode(np.where(reliable, h, np.inf).astype(np.float32), sq,
+                   borderType=cv2.BORDER_REPLICATE)
+    with np.errstate(invalid="ignore"):
+        step = (reliable & ((hi - lo) > jump_mm)).astype(np.uint8)
+    disk = cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (2 * radius_px + 1, 2 * radius_px + 1))
+    return cv2.dilate(step, disk, borderType=cv2.BORDER_CONSTANT, borderValue=0).view(bool)
 
 
 def _mismatch(path, shape, first, ref_shape) -> InputError:

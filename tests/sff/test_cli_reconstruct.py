@@ -146,3 +146,14 @@ def test_outputs_chooses_the_files_written(tmp_path, capsys):
     assert main(args + ["--outputs", "height_mm.tiff,nope.png"]) == 2
     assert "unknown nope.png" in capsys.readouterr().err
     assert sorted(p.name for p in out.iterdir()) == ["cloud.ply", "height_mm.tiff", "summary.json"]
+
+
+def test_coarse_levels_option_reaches_the_reconstruction(cone_stack, tmp_path):
+    root, _ = cone_stack
+    out = tmp_path / "o"
+    # the 128-px cone just holds a 16x level (8 blocks on its shorter side)
+    assert main(["-q", "reconstruct", str(root), "--out", str(out), "--coarse-levels", "2",
+                 "--outputs", "summary.json"]) == 0
+    doc = json.loads((out / "summary.json").read_text())
+    assert doc["config"]["coarse_levels"] == 2
+    assert list(doc["coarse_fractions"]) == ["4", "16"]
