@@ -94,6 +94,18 @@ class FocusConfig:
         a second square of ``window_px + 2`` px for a rise of the same slope
         (``edge_jump_steps`` per 5 px; see :func:`smdinspect.sff.depth_edge_mask`).
         Default on.
+    fit_power : "auto", float or None
+        Exponent p of the ``power`` fit's model for the heights. The shape of the focus
+        curve is the sweep's (texture spectrum and blur): a broadband texture follows the
+        operator's power law, a narrow-band one is close to a Gaussian (large p), and at a
+        coarse step a wrong shape terraces the heights. ``"auto"`` picks p from the sweep:
+        the candidate under which a central crop's smooth slopes do not vary with the
+        fractional frame position (:func:`smdinspect.sff._depth.select_curve_power`;
+        ``summary.json`` → ``curve_power``); a number fixes it; None keeps the
+        operator's (:attr:`FocusOperator.curve_power`). The confidence cues always use
+        the operator's. Measured (benchmarks/accuracy.py): terraces at 2.5 depths of
+        field per step 0.070 → 0.026 Δd p-p, demo/dense boards median |error| 0.054 /
+        0.060 → 0.038 / 0.041 step. Default "auto".
     own_window_px : int
         Side of a small window centred on each pixel whose focus is tracked beside the
         main one (operators that sum a per-pixel response only). A window on weak
@@ -119,6 +131,7 @@ class FocusConfig:
     threshold: float = 0.0
     fit: FitMethod = FitMethod.POWER
     fit_half_width: int = 3
+    fit_power: float | str | None = "auto"
     min_confidence: float = 0.5
     edge_jump_steps: float = 3.0
     halo_ratio: float = 4.0
@@ -167,6 +180,11 @@ class FocusConfig:
             raise InputError(f"support_steps must be >= 0 (0: off); got {self.support_steps!r}")
         if not isinstance(self.coarse_factor, int) or not 0 <= self.coarse_factor <= 16:
             raise InputError(f"coarse_factor must be an integer in 0..16; got {self.coarse_factor!r}")
+        if not (self.fit_power is None or self.fit_power == "auto" or (
+                isinstance(self.fit_power, (int, float)) and not isinstance(self.fit_power, bool)
+                and math.isfinite(self.fit_power) and 0.25 <= self.fit_power <= 16)):
+            raise InputError(f'fit_power must be "auto", None or a number in 0.25..16; '
+                             f'got {self.fit_power!r}')
         if not isinstance(self.edge_gap_check, bool):
             raise InputError(f"edge_gap_check must be true or false; got {self.edge_gap_check!r}")
         if not isinstance(self.own_window_px, int) or self.own_window_px < 0 or (

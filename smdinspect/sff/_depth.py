@@ -228,6 +228,71 @@ class PeakFit:
     best_idx: np.ndarray  # int16
 
 
+#: Candidate shape exponents of the ``power`` model, as multiples of the operator's own p.
+POWER_CANDIDATES = (0.5, 0.75, 1.0, 1.5, 2.0, 3.0)
+#: Pixels (the clearest peaks) :func:`select_curve_power` judges the candidates on.
+POWER_SAMPLE_PX = 40000
+
+
+def select_curve_power(tracker: PeakTracker, z_mm: np.ndarray, *, power: float) -> tuple[float, dict]:
+    """The ``power`` model's exponent p under which the surface has no terraces.
+
+    The shape of a focus curve is the sweep's, not the pixel's: it follows from the
+    texture's spectrum and the lens's blur (a broadband 1/ω² texture gives the power law
+    of :attr:`FocusOperator.curve_power`, a narrow-band one a Gaussian: p → ∞). At a
+    coarse step the fit uses the peak and its two neighbours, which any p fits exactly,
+    so no single curve tells the shape; a wrong one biases every sub-frame position by
+    a function of its fractional part, and a smooth surface then rises in terraces: its
+    slope varies with the fractional frame position. Each candidate p·
+    :data:`POWER_CANDIDATES` is fitted over a central crop (at most
+    :data:`POWER_SAMPLE_PX` pixels) and scored by how much the median slope magnitude of
+    the clear, smooth pixels varies over 8 bins of the fractional position (relative
+    spread of the bins' medians); the lowest score wins. Returns ``(p, {p: score})``;
+    the operator's own p when the crop has too few sloped pixels to judge.
+    """
+    k = tracker.k
+    if tracker.window is None or len(z_mm) < 4:
+        return power, {}
+    h, w = tracker.shape
+    side = int(np.sqrt(POWER_SAMPLE_PX))
+    r0, c0 = max(0, (h - side) // 2), max(0, (w - side) // 2)
+    rs, cs = slice(r0, r0 + side), slice(c0, c0 + side)
+    args = (tracker.best_idx[rs, cs], tracker.window[:, rs, cs], tracker.alternative[rs, cs],
+            tracker.best[rs, cs], tracker.floor[rs, cs])
+    step = float(np.median(np.diff(z_mm)))
+    with np.errstate(invalid="ignore", divide="ignore"):
+        clear = args[3] > 3.0 * np.where(np.isfinite(args[4]), args[4], np.inf)
+    scores = {}
+    for m in POWER_CANDIDATES:
+        pw = power * m
+        fit = _fit_block(*args, z_mm, k=k, method=FitMethod.POWER, power=pw)
+        pos = np.interp(fit.height_mm, z_mm, np.arange(len(z_mm), dtype=np.float64)).astype(np.float32)
+        good = (fit.interior & clear).astype(np.uint8)
+        good = cv2.erode(good, np.ones((3, 3), np.uint8)).view(bool)
+        gx = cv2.Sobel(pos, cv2.CV_32F, 1, 0, ksize=3, scale=0.125)
+        gy = cv2.Sobel(pos, cv2.CV_32F, 0, 1, ksize=3, scale=0.125)
+        g = np.hypot(gx, gy)
+        # sloped but smooth: at least 1/50 frame per pixel, at most half a frame
+        sel = good & (g > 0.02) & (g < 0.5)
+        if sel.sum() < 2000:
+            return power, {}
+        frac = pos[sel] % 1.0
+        bins = np.minimum((frac * 8).astype(int), 7)
+        med = [np.median(g[sel][bins == b]) for b in range(8) if np.sum(bins == b) >= 50]
+        if len(med) < 6:
+            return power, {}
+        scores[pw] = float(np.std(med) / np.mean(med))
+    ps = sorted(scores)
+    i = ps.index(min(scores, key=scores.get))
+    if 0 < i < len(ps) - 1:  # the parabola through the best and its neighbours, in ln p
+        x = np.log(ps[i - 1:i + 2])
+        y = np.array([scores[q] for q in ps[i - 1:i + 2]])
+        c2, c1, _ = np.polyfit(x, y, 2)
+        if c2 > 0:
+            return float(np.exp(np.clip(-c1 / (2 * c2), x[0], x[2]))), scores
+    return ps[i], scores
+
+
 def fit_peaks(tracker: PeakTracker, z_mm: np.ndarray, *, method: FitMethod,
               power: float = 2.0, workers: int = 1) -> PeakFit:
     """Fit the focus-curve peak of every pixel above the curve's floor.

@@ -17,7 +17,7 @@ from ._align import Alignment, estimate_alignment
 from ._config import FitMethod, FocusConfig
 from ._confidence import (blur_px_per_frame, borrowed_mask, confidence_cues, confidence_map,
                           defocus_halo_mask, depth_edge_mask, unsupported_mask)
-from ._depth import PeakTracker, centroid_correction, fit_peaks
+from ._depth import PeakTracker, centroid_correction, fit_peaks, select_curve_power
 from ._focus import (FocusOperator, band_powers, focus_measure, focus_measure_moments,
                      noise_focus, noise_focus_spread, prefilter, prefilter_sigma)
 from ._surface import Surface
@@ -252,10 +252,12 @@ def reconstruct(
         noise_gain = max(1.0, noise_focus_spread(operator.value, config.window_px, config.threshold,
                                                  round(sigma, 3))
                          / noise_focus_spread(operator.value, config.window_px, config.threshold))
+    curve: dict = {}
     fit, confidence, halo, beyond = _level(tracker, z_mm, config, window_px=config.window_px,
                                            halo_radius_px=config.window_px + 2,
-                                           noise_gain=noise_gain, own_px=own_px)
-    meta: dict = {}
+                                           noise_gain=noise_gain, own_px=own_px,
+                                           select_power=curve)
+    meta: dict = {"curve_power": curve} if curve else {}
     field = np.ones(tracker.shape, bool)
     if alignment is not None:
         field = alignment.field
@@ -377,18 +379,35 @@ def _prefetch(read: Callable[[int], np.ndarray], n: int, pool: ThreadPoolExecuto
 
 
 def _level(tracker: PeakTracker, z_mm: np.ndarray, config: FocusConfig, *, window_px: int,
-           halo_radius_px: int, noise_gain: float = 1.0, own_px: int = 0):
+           halo_radius_px: int, noise_gain: float = 1.0, own_px: int = 0,
+           select_power: dict | None = None):
     """Fit one level's peaks and judge them: (fit, confidence, halo mask, beyond).
 
     ``beyond`` (int8) is −1 / +1 where the curve is sharpest on the first / last frame
     and passes the noise and second-mode tests (clearly textured, falling away from the
     end): the surface is at or beyond that end of the sweep. The halo mask includes the
     heights borrowed from a neighbour (:func:`borrowed_mask`, when the tracker has the
-    ``own_px`` window's focus).
+    ``own_px`` window's focus). With ``select_power`` (a dict, filled with the choice)
+    the heights use :attr:`FocusConfig.fit_power` (:func:`select_curve_power` for "auto").
     """
     tracker.finish()
-    fit = fit_peaks(tracker, z_mm, method=config.fit, workers=config.workers,
-                    power=FocusOperator(config.operator).curve_power)
+    power = FocusOperator(config.operator).curve_power
+    fit = fit_peaks(tracker, z_mm, method=config.fit, workers=config.workers, power=power)
+    if select_power is not None and config.fit == FitMethod.POWER and config.fit_power is not None:
+        # the heights from the curve shape of this sweep; the confidence cues stay on the
+        # operator's model, which their thresholds were set on
+        if config.fit_power == "auto":
+            chosen, scores = select_curve_power(tracker, z_mm, power=power)
+            select_power.update(power=round(chosen, 3),
+                                scores={str(round(q, 3)): round(v, 4) for q, v in scores.items()})
+        else:
+            chosen = float(config.fit_power)
+            select_power.update(power=chosen)
+        if abs(chosen / power - 1) > 0.05:
+            other = fit_peaks(tracker, z_mm, method=config.fit, workers=config.workers,
+                              power=chosen)
+            np.copyto(fit.height_mm, other.height_mm, where=fit.interior & other.interior)
+            del other
     tracker.release_curves()  # the fit holds what is needed from here on
     cues = confidence_cues(fit, window_px=window_px, noise_spread_gain=noise_gain)
     confidence = confidence_map(fit, window_px=window_px, cues=cues)
@@ -399,7 +418,6 @@ def _level(tracker: PeakTracker, z_mm: np.ndarray, config: FocusConfig, *, windo
         frame_pos = np.interp(fit.height_mm, z_mm, np.arange(len(z_mm), dtype=np.float64))
         # a sharp edge whose peak lies on the first or last frame (beyond the sweep)
         # spreads its blur like any other: it may explain its neighbours' peaks
-        power = FocusOperator(config.operator).curve_power
         kappa = blur_px_per_frame(fit, confidence >= config.min_confidence, power=power)
         halo = defocus_halo_mask(fit.f_best, frame_pos,
                                  (confidence >= config.min_confidence) | first | last,
