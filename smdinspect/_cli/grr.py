@@ -124,6 +124,7 @@ def run(args: argparse.Namespace) -> int:
     from ..errors import InputError
     from ..grr import analyse_grr, inspect_for_grr, read_records, write_grr
     from .inspect import inspect_config_from
+    from ..pipeline import inspection_focus_config
     from .reconstruct import focus_config_from
 
     if args.step_mm is not None:
@@ -132,7 +133,7 @@ def run(args: argparse.Namespace) -> int:
         raise InputError(f"--fail-above must be > 0 (percent); got {args.fail_above}")
     stacks, operators = _sweeps(args)
     board = load_any_board(args.board)
-    focus = focus_config_from(args)
+    focus = focus_config_from(args, inspection_focus_config())
     config = inspect_config_from(args)
     found = inspect_for_grr(stacks, board, args.out, focus_config=focus, inspect_config=config,
                             pixel_size_mm=args.pixel_size_mm, html=args.html,

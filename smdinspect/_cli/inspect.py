@@ -67,6 +67,7 @@ def run(args: argparse.Namespace) -> int:
     from ..pipeline import inspect_stack, is_reconstruction, load_reconstruction
     from ..sff._export import RECONSTRUCTION_OUTPUTS
     from ..stack import open_stack
+    from ..pipeline import inspection_focus_config
     from .reconstruct import focus_config_from
 
     board = load_any_board(args.board)  # a board JSON, or a CAD file imported on the fly
@@ -90,7 +91,8 @@ def run(args: argparse.Namespace) -> int:
     with _atomic.replace_dir(args.out, replaces=RECONSTRUCTION_OUTPUTS + REPORT_FILES
                              + (CFX_FILE,), carry=carry) as tmp:
         try:
-            result = inspect_stack(stack, board, tmp, focus_config=focus_config_from(args),
+            focus = focus_config_from(args, inspection_focus_config())
+            result = inspect_stack(stack, board, tmp, focus_config=focus,
                                    inspect_config=config, keep_unreliable=args.keep_unreliable,
                                    progress=progress_callback(args, "focus"),
                                    html=not args.no_html, source=source)

@@ -45,7 +45,11 @@ def add_stack_arguments(p: argparse.ArgumentParser) -> None:
                    help="keep unreliable points in cloud.ply and the mesh")
 
 
-def focus_config_from(args: argparse.Namespace):
+def focus_config_from(args: argparse.Namespace, base=None):
+    """The FocusConfig the command line asks for: ``base`` (a FocusConfig; the
+    reconstruction defaults when None) with the options given replaced."""
+    import dataclasses
+
     from ..errors import InputError
     from ..sff import FocusConfig
 
@@ -57,10 +61,11 @@ def focus_config_from(args: argparse.Namespace):
             prefilter = float(prefilter)
         except ValueError:
             raise InputError(f"--prefilter must be 'auto' or a number of pixels; got {prefilter!r}") from None
-    return FocusConfig(operator=args.operator, window_px=args.window_px, fit=args.fit,
-                       fit_half_width=args.fit_half_width, min_confidence=args.min_confidence,
-                       prefilter_px=prefilter, align=args.align, workers=args.workers,
-                       coarse_levels=getattr(args, "coarse_levels", 1))
+    given = dict(operator=args.operator, window_px=args.window_px, fit=args.fit,
+                 fit_half_width=args.fit_half_width, min_confidence=args.min_confidence,
+                 prefilter_px=prefilter, align=args.align, workers=args.workers,
+                 coarse_levels=getattr(args, "coarse_levels", 1))
+    return dataclasses.replace(base, **given) if base is not None else FocusConfig(**given)
 
 
 def register(sub: argparse._SubParsersAction) -> None:

@@ -137,3 +137,35 @@ def test_wrong_board_through_the_library(run):
     _, _, root = run
     with pytest.raises(BoardNotLocatedError):
         inspect_stack(root / "out", DENSE, root / "wrong2")
+
+
+@pytest.mark.parametrize("command", ["inspect", "grr"])
+def test_cli_inspection_commands_use_the_inspection_focus_settings(command, tmp_path,
+                                                                   monkeypatch):
+    """`inspect` and `grr` start from inspection_focus_config() (5-px window, no coarse
+    level, no support check, halo ratio 8, ...) and replace only what the command line
+    gives; they used to start from the reconstruction defaults but the window."""
+    import dataclasses
+
+    import smdinspect.pipeline as pipeline
+    from smdinspect.stack import StackWriter
+
+    seen = []
+
+    def fake(stack, board, out, *, focus_config=None, **kw):
+        seen.append(focus_config)
+        raise RuntimeError("stop here")
+
+    monkeypatch.setattr(pipeline, "inspect_stack", fake)
+    rng = np.random.default_rng(0)
+    stacks = []
+    for k in range(2 if command == "grr" else 1):
+        w = StackWriter(tmp_path / f"s{k}", pixel_size_mm=0.02)
+        for z in (0.0, 0.05, 0.1):
+            w.add_frame(rng.integers(0, 255, (800, 800), dtype=np.uint8), z)
+        w.write_manifest()
+        stacks.append(str(tmp_path / f"s{k}"))
+    code = main(["-q", command, *stacks, "--board", str(DEMO), "--out", str(tmp_path / "o"),
+                 "--align"])
+    assert code not in (0, 1) and seen  # stopped inside the fake, after the config was made
+    assert seen[0] == dataclasses.replace(pipeline.inspection_focus_config(), align=True)
