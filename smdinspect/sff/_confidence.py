@@ -148,6 +148,25 @@ def borrowed_mask(share: np.ndarray, ratio: np.ndarray, *, own_px: int,
     return (share < OWN_SHARE_MIN) & (scaled >= SNR_OK)
 
 
+def step_levels(height_mm: np.ndarray, reliable: np.ndarray, *, jump_mm: float,
+                span_px: int) -> np.ndarray:
+    """(H, W) float32: at each reliable pixel whose ``span_px`` square holds reliable
+    heights more than ``jump_mm`` apart, the middle of their range (a height step's
+    level); −inf elsewhere."""
+    import cv2
+
+    h = height_mm.astype(np.float32)
+    square = np.ones((span_px, span_px), np.uint8)
+    # replicated borders: OpenCV's constant border is ∓FLT_MAX, finite under every test
+    hi = cv2.dilate(np.where(reliable, h, -np.inf).astype(np.float32), square,
+                    borderType=cv2.BORDER_REPLICATE)
+    lo = cv2.erode(np.where(reliable, h, np.inf).astype(np.float32), square,
+                   borderType=cv2.BORDER_REPLICATE)
+    with np.errstate(invalid="ignore", over="ignore"):
+        step = reliable & ((hi - lo) > jump_mm)
+        return np.where(step, 0.5 * (hi + lo), -np.inf).astype(np.float32)
+
+
 def depth_edge_mask(height_mm: np.ndarray, reliable: np.ndarray, *, jump_mm: float,
                     radius_px: int, span_px: int = 5, wide_span_px: int = 0) -> np.ndarray:
     """(H, W) bool: pixels within ``radius_px`` of a height step, on its high side.
@@ -169,20 +188,11 @@ def depth_edge_mask(height_mm: np.ndarray, reliable: np.ndarray, *, jump_mm: flo
     import cv2
 
     h = height_mm.astype(np.float32)
-    up = np.where(reliable, h, -np.inf).astype(np.float32)
-    down = np.where(reliable, h, np.inf).astype(np.float32)
-    level = np.full(h.shape, -np.inf, np.float32)
-    spans = [(span_px, jump_mm)]
+    level = step_levels(h, reliable, jump_mm=jump_mm, span_px=span_px)
     if wide_span_px > span_px:
-        spans.append((wide_span_px, jump_mm * wide_span_px / span_px))
+        np.maximum(level, step_levels(h, reliable, jump_mm=jump_mm * wide_span_px / span_px,
+                                      span_px=wide_span_px), out=level)
     with np.errstate(invalid="ignore", over="ignore"):
-        for side, jump in spans:
-            square = np.ones((side, side), np.uint8)
-            hi = cv2.dilate(up, square, borderType=cv2.BORDER_REPLICATE)
-            lo = cv2.erode(down, square, borderType=cv2.BORDER_REPLICATE)
-            step = reliable & ((hi - lo) > jump)
-            np.maximum(level, np.where(step, 0.5 * (hi + lo), -np.inf).astype(np.float32),
-                       out=level)
         if not np.isfinite(level).any():
             return np.zeros(h.shape, bool)
         if radius_px > 0:

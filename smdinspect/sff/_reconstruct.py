@@ -16,7 +16,7 @@ from ..stack import FocalStack
 from ._align import Alignment, estimate_alignment
 from ._config import FitMethod, FocusConfig
 from ._confidence import (blur_px_per_frame, borrowed_mask, confidence_cues, confidence_map,
-                          defocus_halo_mask, depth_edge_mask, unsupported_mask)
+                          defocus_halo_mask, depth_edge_mask, step_levels, unsupported_mask)
 from ._depth import PeakTracker, centroid_correction, fit_peaks, select_curve_power
 from ._focus import (FocusOperator, band_powers, focus_measure, focus_measure_moments,
                      noise_focus, noise_focus_spread, prefilter, prefilter_sigma)
@@ -530,18 +530,12 @@ def _energy_offset_px(energy: np.ndarray, window_px: int) -> tuple[np.ndarray, n
     return dx.astype(np.float32), dy.astype(np.float32)
 
 
-def _near_step(height, reliable, *, jump_mm: float, radius_px: int, span_px: int = 5):
-    """Pixels within ``radius_px`` of a height step (either side; see depth_edge_mask)."""
-    h = height.astype(np.float32)
-    sq = np.ones((span_px, span_px), np.uint8)
-    hi = cv2.dilate(np.where(reliable, h, -np.inf).astype(np.float32), sq,
-                    borderType=cv2.BORDER_REPLICATE)
-    lo = cv2.erode(np.where(reliable, h, np.inf).astype(np.float32), sq,
-                   borderType=cv2.BORDER_REPLICATE)
-    with np.errstate(invalid="ignore"):
-        step = (reliable & ((hi - lo) > jump_mm)).astype(np.uint8)
+def _near_step(height, reliable, *, jump_mm: float, radius_px: int) -> np.ndarray:
+    """Pixels within ``radius_px`` of a height step, either side (:func:`step_levels`)."""
+    step = np.isfinite(step_levels(height, reliable, jump_mm=jump_mm, span_px=5))
     disk = cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (2 * radius_px + 1, 2 * radius_px + 1))
-    return cv2.dilate(step, disk, borderType=cv2.BORDER_CONSTANT, borderValue=0).view(bool)
+    return cv2.dilate(step.astype(np.uint8), disk, borderType=cv2.BORDER_CONSTANT,
+                      borderValue=0).view(bool)
 
 
 def _mismatch(path, shape, first, ref_shape) -> InputError:
