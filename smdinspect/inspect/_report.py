@@ -428,14 +428,23 @@ def _chip(verdict: str) -> str:
 
 
 def _height_figure(height: np.ndarray, reliable: np.ndarray, scale: float, marks, *,
-                   caption: str, aria: str) -> str:
+                   caption: str, aria: str, joints=None) -> str:
+    """The height map figure. With ``joints`` the colours stop at the highest nominal
+    joint height when the map's robust range goes beyond it: a 0.1-0.3 mm fillet is not
+    one dark colour next to a 1.5 mm body, which is clipped to the top colour."""
     lo, hi = height_range(height[reliable & np.isfinite(height)])
+    note = "0.5–99.8 percentile of the reliable pixels; beyond it clipped"
+    nominal = [j.expected_nominal_mm for j in joints or () if np.isfinite(j.expected_nominal_mm)]
+    if nominal and lo < max(nominal) < hi:
+        hi = max(nominal)
+        note = ("from the 0.5 percentile of the reliable pixels to the highest nominal joint "
+                "height, so the fillets take the scale; taller parts clipped")
     pic = resize(colourise(height, reliable, lo, hi), scale)
     svg = overview_svg(pic, marks, labels=False, css_class="heightmap", aria=aria)
     bar = colour_bar_svg(lo, hi, height_px=pic.shape[0], uid="cb-board")
     return (f"<figure><div class='withbar'>{svg}{bar}</div><figcaption>{caption} "
-            f"Colour scale {lo:.3f} … {hi:.3f} mm (0.5–99.8 percentile of the reliable pixels; "
-            "beyond it clipped); unreliable pixels dimmed.</figcaption></figure>")
+            f"Colour scale {lo:.3f} … {hi:.3f} mm ({note}); unreliable pixels dimmed."
+            "</figcaption></figure>")
 
 
 def _view3d_figure(view3d: np.ndarray | None, note: str) -> str:
@@ -607,7 +616,8 @@ def report_html(result: InspectionResult, *, source: str | None = None,
                      "</figure><div class='side'>")
         parts.append(_height_figure(result.height_above_mm, reliable, side,
                                     _overview_marks(result, side, href),
-                                    caption="Height above the board plane.", aria="height map"))
+                                    caption="Height above the board plane.", aria="height map",
+                                    joints=result.joints))
         parts.append(_view3d_figure(view3d, view3d_note))
         parts.append("</div></div>")
     if look:

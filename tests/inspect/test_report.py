@@ -271,3 +271,13 @@ def test_joints_csv_cells_cannot_run_as_spreadsheet_formulas(inspected):
     assert rows[0]["reason"] == "'@SUM(A1)"
     # numbers stay numbers, negative ones included
     assert all(not r["measured_max_mm"].startswith("'") for r in rows)
+
+
+def test_board_height_map_spends_its_colours_on_the_joints(inspected):
+    """The demo board's IC body stands 1.5 mm high, its fillets 0.1-0.3 mm: the board map's
+    scale stops at the highest nominal joint height (taller parts clipped)."""
+    text = report_html(inspected)
+    board = re.search(r"Colour scale (-?[\d.]+) … (-?[\d.]+) mm \(([^)]*)\)", text)
+    top = max(j.expected_nominal_mm for j in inspected.joints)
+    assert float(board.group(2)) == pytest.approx(top, abs=6e-4)
+    assert "highest nominal joint height" in board.group(3)
