@@ -259,7 +259,6 @@ def select_curve_power(tracker: PeakTracker, z_mm: np.ndarray, *, power: float) 
     rs, cs = slice(r0, r0 + side), slice(c0, c0 + side)
     args = (tracker.best_idx[rs, cs], tracker.window[:, rs, cs], tracker.alternative[rs, cs],
             tracker.best[rs, cs], tracker.floor[rs, cs])
-    step = float(np.median(np.diff(z_mm)))
     with np.errstate(invalid="ignore", divide="ignore"):
         clear = args[3] > 3.0 * np.where(np.isfinite(args[4]), args[4], np.inf)
     scores = {}

@@ -256,7 +256,7 @@ def reconstruct(
     fit, confidence, halo, beyond = _level(tracker, z_mm, config, window_px=config.window_px,
                                            halo_radius_px=config.window_px + 2,
                                            noise_gain=noise_gain, own_px=own_px,
-                                           select_power=curve)
+                                           curve_out=curve)
     meta: dict = {"curve_power": curve} if curve else {}
     field = np.ones(tracker.shape, bool)
     if alignment is not None:
@@ -380,29 +380,29 @@ def _prefetch(read: Callable[[int], np.ndarray], n: int, pool: ThreadPoolExecuto
 
 def _level(tracker: PeakTracker, z_mm: np.ndarray, config: FocusConfig, *, window_px: int,
            halo_radius_px: int, noise_gain: float = 1.0, own_px: int = 0,
-           select_power: dict | None = None):
+           curve_out: dict | None = None):
     """Fit one level's peaks and judge them: (fit, confidence, halo mask, beyond).
 
     ``beyond`` (int8) is −1 / +1 where the curve is sharpest on the first / last frame
     and passes the noise and second-mode tests (clearly textured, falling away from the
     end): the surface is at or beyond that end of the sweep. The halo mask includes the
     heights borrowed from a neighbour (:func:`borrowed_mask`, when the tracker has the
-    ``own_px`` window's focus). With ``select_power`` (a dict, filled with the choice)
+    ``own_px`` window's focus). With ``curve_out`` (a dict, filled with the choice)
     the heights use :attr:`FocusConfig.fit_power` (:func:`select_curve_power` for "auto").
     """
     tracker.finish()
     power = FocusOperator(config.operator).curve_power
     fit = fit_peaks(tracker, z_mm, method=config.fit, workers=config.workers, power=power)
-    if select_power is not None and config.fit == FitMethod.POWER and config.fit_power is not None:
+    if curve_out is not None and config.fit == FitMethod.POWER and config.fit_power is not None:
         # the heights from the curve shape of this sweep; the confidence cues stay on the
         # operator's model, which their thresholds were set on
         if config.fit_power == "auto":
             chosen, scores = select_curve_power(tracker, z_mm, power=power)
-            select_power.update(power=round(chosen, 3),
-                                scores={str(round(q, 3)): round(v, 4) for q, v in scores.items()})
+            curve_out.update(power=round(chosen, 3),
+                             scores={str(round(q, 3)): round(v, 4) for q, v in scores.items()})
         else:
             chosen = float(config.fit_power)
-            select_power.update(power=chosen)
+            curve_out.update(power=chosen)
         if abs(chosen / power - 1) > 0.05:
             other = fit_peaks(tracker, z_mm, method=config.fit, workers=config.workers,
                               power=chosen)
@@ -454,10 +454,9 @@ class _CoarseLevel:
 
     def __init__(self, shape: tuple[int, int], n_frames: int, config: FocusConfig,
                  factor: int) -> None:
-        f = factor
+        f = self.factor = factor
         self.shape = shape
         self.small = (shape[0] // f, shape[1] // f)
-        self.factor = f
         #: side of the full-resolution footprint one coarse focus value sums over
         self.window_px = config.window_px + self.BOX * f - 1
         self.tracker = PeakTracker(self.small, n_frames, half_width=config.fit_half_width)
