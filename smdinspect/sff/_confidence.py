@@ -35,6 +35,11 @@ are made unreliable. The low side keeps its depths: a
 fillet at the foot of a termination is measured, the termination's rim is not. A
 fillet at 45° rises about one step over five pixels, far from a step.
 
+The same bleeding seen from the low side's own pixels: :func:`borrowed_mask` flags a
+pixel whose small centred window (``FocusConfig.own_window_px``) is clearly peaked
+elsewhere than the main window, whose height therefore came from an edge inside it;
+:func:`depth_edge_mask` also looks across a gap of unreliable pixels at a step.
+
 Pixels whose peak lies on the first or last frame, or whose fit is inverted (σ² ≤ 0)
 or lands outside its neighbours, get confidence 0. The default reliability threshold
 on the product is 0.5 (``FocusConfig.min_confidence``).
@@ -46,8 +51,8 @@ import numpy as np
 
 from ._depth import PeakFit
 
-__all__ = ["blur_px_per_frame", "borrowed_mask", "confidence_map", "defocus_halo_mask", "depth_edge_mask",
-           "halo_mask", "unsupported_mask"]
+__all__ = ["blur_px_per_frame", "borrowed_mask", "confidence_map", "defocus_halo_mask",
+           "depth_edge_mask", "halo_mask", "step_levels", "unsupported_mask"]
 
 R_LOW_DB, R_HIGH_DB = 14.0, 26.0
 WIDTH_OK, WIDTH_BAD = 2.0, 4.0
