@@ -501,6 +501,14 @@ def _new(joint, win: _Win, pad: np.ndarray, level: float) -> JointMeasurement:
                             0.0, level_mm=level, polygon_px=ctx.board_to_px(joint.polygon_mm))
 
 
+def _propagated_u(g: np.ndarray, u: np.ndarray) -> float:
+    """Uncertainty of the amplitude A of ``z = A·g`` (least squares) from the pixels' own
+    uncertainties ``u``: √Σ(g²u²) / Σg²; NaN without any finite ``u``."""
+    if not np.isfinite(u).any():
+        return NAN
+    return float(np.sqrt(np.nansum(g ** 2 * u ** 2)) / np.sum(g ** 2))
+
+
 def _meniscus(d: np.ndarray, length: float, z: np.ndarray, uz: np.ndarray,
               info: dict | None = None) -> tuple[float, float]:
     """Fit ``z = F·(1 − d/length)²`` (robust, 3-MAD trimming); returns (F, uncertainty).
@@ -534,7 +542,7 @@ def _meniscus(d: np.ndarray, length: float, z: np.ndarray, uz: np.ndarray,
         info["reach"] = float(np.percentile(g[keep], 95))
     gk = g[keep]
     uk = uz[keep]
-    uf = float(np.sqrt(np.nansum(gk ** 2 * uk ** 2)) / np.sum(gk ** 2)) if np.isfinite(uk).any() else NAN
+    uf = _propagated_u(gk, uk)
     return F, _hypot(se, uf)
 
 
@@ -658,7 +666,7 @@ def _heel_fillet(x: np.ndarray, z: np.ndarray, uz: np.ndarray, lead_mm: float, *
     den = float(np.sum(gk * gk))
     se = float(np.sqrt(np.sum(rk * rk) / max(keep.sum() - 1, 1) / den))
     uk = np.asarray(uz, np.float64)[keep]
-    uf = float(np.sqrt(np.nansum(gk ** 2 * uk ** 2)) / den) if np.isfinite(uk).any() else NAN
+    uf = _propagated_u(gk, uk)
     u_lead = 1.2533 * s0 / math.sqrt(max(int(flat.sum()), 1))
     if info is not None:
         info.update(reach_mm=reach, n=int(keep.sum()))

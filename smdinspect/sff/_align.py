@@ -164,6 +164,12 @@ def _small(gray: np.ndarray, scale: float) -> np.ndarray:
     return (g - g.mean()) / (g.std() + 1e-6)
 
 
+def _ecc(a: np.ndarray, b: np.ndarray, warp: np.ndarray):
+    """Affine ECC of ``b`` onto ``a`` from ``warp`` (float32 2 × 3): (correlation, warp);
+    raises cv2.error when it does not converge."""
+    return cv2.findTransformECC(a, b, warp, cv2.MOTION_AFFINE, _ECC_CRITERIA, None, 5)
+
+
 def _ecc_pyramid(prev: np.ndarray, cur: np.ndarray, init: np.ndarray, n: int):
     """Affine ECC of ``cur`` onto ``prev`` (both :func:`_small`): at full size from
     ``init``, and if that fails, coarse to fine.
@@ -177,8 +183,7 @@ def _ecc_pyramid(prev: np.ndarray, cur: np.ndarray, init: np.ndarray, n: int):
     correlation 0 and ``init`` when none converged.
     """
     try:  # at full size first: the texture the coarse levels blur away may be all there is
-        cc, warp = cv2.findTransformECC(prev, cur, init.astype(np.float32).copy(),
-                                        cv2.MOTION_AFFINE, _ECC_CRITERIA, None, 5)
+        cc, warp = _ecc(prev, cur, init.astype(np.float32).copy())
         if cc >= MIN_CORRELATION:
             return float(cc), warp
         single: tuple[float, np.ndarray] = (float(cc), warp)
@@ -194,7 +199,7 @@ def _ecc_pyramid(prev: np.ndarray, cur: np.ndarray, init: np.ndarray, n: int):
     best: tuple[float, np.ndarray] = (0.0, init)
     for level, (a, b) in enumerate(reversed(levels)):
         try:
-            cc, warp = cv2.findTransformECC(a, b, warp, cv2.MOTION_AFFINE, _ECC_CRITERIA, None, 5)
+            cc, warp = _ecc(a, b, warp)
             full = warp.copy()
             full[:, 2] *= 2.0 ** (len(levels) - 1 - level)
             best = (float(cc), full)  # the finest level that converged
@@ -225,8 +230,7 @@ def _check_chain(kept: dict[int, np.ndarray], to_frame: list[np.ndarray],
         a, b = kept[i], kept[j]
         chain = s @ to_frame[j] @ np.linalg.inv(to_frame[i]) @ np.linalg.inv(s)  # small px
         try:
-            cc, warp = cv2.findTransformECC(a, b, chain[:2].astype(np.float32), cv2.MOTION_AFFINE,
-                                            _ECC_CRITERIA, None, 5)
+            cc, warp = _ecc(a, b, chain[:2].astype(np.float32))
         except cv2.error:
             continue
         if cc < MIN_CORRELATION:

@@ -50,14 +50,19 @@ def _truth_case(name, seed):
     return case, surface, labels
 
 
+def _registered_truth_case(board_file, seed):
+    """(case, registration of its true-height surface, true board-to-world transform)."""
+    case, surface, labels = _truth_case(board_file, seed)
+    reg = register_board(surface.height_mm, surface.reliable, case["board"],
+                         pixel_size_mm=surface.pixel_size_mm, aif=surface.aif)
+    return case, reg, np.array(labels["placement"]["board_to_world"])
+
+
 def test_a_cut_board_with_a_tombstone_and_a_missing_chip_is_not_placed_turned():
     # Tuning case demo 25: the SOIC-8 cut by the field edge, the 1206 tombstoned at 60°,
     # the 0402 missing, no fiducials. The correlation preferred a placement 1.45° off
     # (0.22 mm at the corners) and the two bodies left were too few for the feature fit.
-    case, surface, labels = _truth_case(DEMO, 25)
-    reg = register_board(surface.height_mm, surface.reliable, case["board"],
-                         pixel_size_mm=surface.pixel_size_mm, aif=surface.aif)
-    T_true = np.array(labels["placement"]["board_to_world"])
+    case, reg, T_true = _registered_truth_case(DEMO, 25)
     assert reg.converged, reg.reason
     assert _corner_error_mm(reg.transform, T_true, case["board"]) < 0.01
 
@@ -155,10 +160,7 @@ def test_a_body_biased_by_an_excess_fillet_is_left_out_of_the_fit():
     # presence threshold and pulls its centroid 60 µm; within 3x the median residual of
     # the fit it pulled, it was kept and turned the board 0.26°. Judged by its deletion
     # residual (off the others' fit) it is an outlier.
-    case, surface, labels = _truth_case(DENSE, 50)
-    reg = register_board(surface.height_mm, surface.reliable, case["board"],
-                         pixel_size_mm=surface.pixel_size_mm, aif=surface.aif)
-    T_true = np.array(labels["placement"]["board_to_world"])
+    case, reg, T_true = _registered_truth_case(DENSE, 50)
     assert reg.converged, reg.reason
     assert "body:R3" in reg.meta["features"]["rejected"]
     assert _corner_error_mm(reg.transform, T_true, case["board"]) < 0.01
