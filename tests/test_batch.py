@@ -887,3 +887,26 @@ def test_clean_leftovers_removes_only_temporary_folders(tmp_path):
     assert sorted(clean_leftovers(tmp_path)) == sorted(temp)
     assert not any(t.exists() for t in temp)
     assert keep.is_dir() and (board / DONE_MARKER).is_file()
+
+
+def test_batch_focus_options_reach_the_boards(monkeypatch, tmp_path):
+    """`batch` starts from inspection's focus settings, like `inspect`, and passes the
+    options given (here --prefilter and --window-px) on to every board."""
+    from smdinspect import batch as batch_module
+    from smdinspect import cli
+    from smdinspect.pipeline import inspection_focus_config
+
+    seen = {}
+
+    def fake_run_batch(*args, focus_config=None, **kwargs):
+        seen["focus"] = focus_config
+        raise InputError("stop here")
+
+    monkeypatch.setattr(batch_module, "run_batch", fake_run_batch)
+    code = cli.main(["-q", "batch", str(tmp_path), "--board", str(BOARD), "--out",
+                     str(tmp_path / "o"), "--prefilter", "auto", "--window-px", "7"])
+    assert code == 2
+    want = dataclasses.replace(inspection_focus_config(), prefilter_px="auto", window_px=7)
+    assert seen["focus"] == want
+    assert cli.main(["-q", "batch", str(tmp_path), "--board", str(BOARD), "--out",
+                     str(tmp_path / "o"), "--prefilter", "wide"]) == 2

@@ -91,6 +91,9 @@ def register(sub: argparse._SubParsersAction) -> None:
                    help="pixels below this confidence are unreliable (default 0.5)")
     f.add_argument("--align", action="store_true", default=None,
                    help="register frames first")
+    f.add_argument("--prefilter", default=None, metavar="auto|PX",
+                   help="Gaussian σ (px) smoothing each frame before the focus measure, "
+                        "against sensor noise; 'auto' picks it per stack (default 0: off)")
     f.add_argument("--threads", type=int, default=None, metavar="T",
                    help="threads per board (default: CPUs / processes; 1 on Dask)")
     f.add_argument("--keep-unreliable", action="store_true",
@@ -114,6 +117,7 @@ def run(args: argparse.Namespace) -> int:
     from ..errors import InputError
     from ..pipeline import inspection_focus_config
     from .inspect import inspect_config_from
+    from .reconstruct import prefilter_value
 
     if args.processes is not None and (args.scheduler or args.dask_local is not None):
         raise InputError("--processes sizes the local process pool; with --scheduler or "
@@ -130,6 +134,8 @@ def run(args: argparse.Namespace) -> int:
     given = {k: getattr(args, k) for k in ("operator", "window_px", "fit", "fit_half_width",
                                            "min_confidence", "align")
              if getattr(args, k) is not None}
+    if args.prefilter is not None:
+        given["prefilter_px"] = prefilter_value(args.prefilter)
     focus = dataclasses.replace(inspection_focus_config(), **given)
     bar = BatchProgress(disable=bool(args.quiet))
     try:

@@ -45,6 +45,18 @@ def add_stack_arguments(p: argparse.ArgumentParser) -> None:
                    help="keep unreliable points in cloud.ply and the mesh")
 
 
+def prefilter_value(text: str) -> float | str:
+    """``--prefilter``'s value: "auto" or a σ in pixels."""
+    from ..errors import InputError
+
+    if text == "auto":
+        return text
+    try:
+        return float(text)
+    except ValueError:
+        raise InputError(f"--prefilter must be 'auto' or a number of pixels; got {text!r}") from None
+
+
 def focus_config_from(args: argparse.Namespace, base=None):
     """The FocusConfig the command line asks for: ``base`` (a FocusConfig; the
     reconstruction defaults when None) with the options given replaced."""
@@ -55,12 +67,7 @@ def focus_config_from(args: argparse.Namespace, base=None):
 
     if args.operator == "auto":  # reconstruct resolves it first (_cli/study.py)
         raise InputError("--operator auto is only available in smdinspect reconstruct")
-    prefilter = getattr(args, "prefilter", "0")
-    if prefilter != "auto":
-        try:
-            prefilter = float(prefilter)
-        except ValueError:
-            raise InputError(f"--prefilter must be 'auto' or a number of pixels; got {prefilter!r}") from None
+    prefilter = prefilter_value(getattr(args, "prefilter", "0"))
     given = dict(operator=args.operator, window_px=args.window_px, fit=args.fit,
                  fit_half_width=args.fit_half_width, min_confidence=args.min_confidence,
                  prefilter_px=prefilter, align=args.align, workers=args.workers,
