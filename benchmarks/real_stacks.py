@@ -35,7 +35,7 @@ CLI = REPO / ".venv" / "bin" / "smdinspect"
 #: name -> (file glob, step_mm for a plain image list; None: z from the file name)
 STACKS = {
     "pcb-oblique": ("pcb_*.jpg", -0.5),
-    "metal-bore": ("image*.jpg", 0.1),
+    "metal-bore": ("image*.jpg", -0.1),  # rim sharp first: focus moves down
     "flat-target-zknown": ("XP005_Z-*.jpg", None),
 }
 #: physical height range (mm) stated by a stack's README; none of the three states one,
