@@ -293,7 +293,7 @@ def select_curve_power(tracker: PeakTracker, z_mm: np.ndarray, *, power: float) 
 
 
 def fit_peaks(tracker: PeakTracker, z_mm: np.ndarray, *, method: FitMethod,
-              power: float = 2.0, workers: int = 1) -> PeakFit:
+              power: float = 2.0, workers: int = 1, heights_only: bool = False):
     """Fit the focus-curve peak of every pixel above the curve's floor.
 
     The floor b is the focus measure of fully defocused texture plus noise, tracked as
@@ -319,34 +319,39 @@ def fit_peaks(tracker: PeakTracker, z_mm: np.ndarray, *, method: FitMethod,
     workers : int
         Threads fitting blocks of rows of about ``FIT_BLOCK_PX`` pixels (numpy releases
         the GIL; the blocks bound the memory of the temporaries).
+    heights_only : bool
+        Return only ``(height_mm, interior)`` (two planes, no confidence cues): the
+        heights of a second curve shape cost a fraction of a full fit's time and memory.
     """
     h, w = tracker.shape
     alternative = tracker.alternative
     args = (tracker.best_idx, tracker.window, alternative, tracker.best, tracker.floor)
     rows = max(1, FIT_BLOCK_PX // max(w, 1))
+    opts = dict(k=tracker.k, method=method, power=power, heights_only=heights_only)
     if h <= rows:
-        return _fit_block(*args, z_mm, k=tracker.k, method=method, power=power)
+        return _fit_block(*args, z_mm, **opts)
     from concurrent.futures import ThreadPoolExecutor
 
     # blocks of rows bound the fit's temporaries (some 40 arrays of the block's size)
     edges = np.append(np.arange(0, h, rows), h)
     # Each thread writes its rows straight into the full-size results (no concatenation).
     dtypes = {"interior": bool, "best_idx": np.int16}
-    out = {f: np.empty(tracker.shape, dtypes.get(f, np.float32)) for f in PeakFit.__dataclass_fields__}
+    fields = ("height_mm", "interior") if heights_only else PeakFit.__dataclass_fields__
+    out = {f: np.empty(tracker.shape, dtypes.get(f, np.float32)) for f in fields}
 
     def run(r0: int, r1: int) -> None:
         part = _fit_block(*(a[:, r0:r1] if a.ndim == 3 else a[r0:r1] for a in args), z_mm,
-                          k=tracker.k, method=method, power=power)
-        for f, a in out.items():
-            a[r0:r1] = getattr(part, f)
+                          **opts)
+        for i, (f, a) in enumerate(out.items()):
+            a[r0:r1] = part[i] if heights_only else getattr(part, f)
 
     with ThreadPoolExecutor(max(1, workers)) as pool:
         list(pool.map(run, edges[:-1], edges[1:]))
-    return PeakFit(**out)
+    return (out["height_mm"], out["interior"]) if heights_only else PeakFit(**out)
 
 
 def _fit_block(best_idx, window, alternative, best, floor, z_mm, *, k: int,
-               method: FitMethod, power: float) -> PeakFit:
+               method: FitMethod, power: float, heights_only: bool = False):
     """:func:`fit_peaks` on one block of rows."""
     z_mm = np.asarray(z_mm, dtype=np.float64)
     n = len(z_mm)
@@ -415,6 +420,8 @@ def _fit_block(best_idx, window, alternative, best, floor, z_mm, *, k: int,
         offset = np.zeros_like(y0) if method == FitMethod.ARGMAX else np.where(bad, 0.0, shift)
         offset = offset.astype(np.float32)
         height = (z0 + offset * step).astype(np.float32)
+        if heights_only:
+            return height, ~bad
         sigma = np.where(inverted | on_edge, np.nan, np.sqrt(half2) * abs(step)).astype(np.float32)
         amp = np.where(bad, y0, np.exp(np.minimum(log_amp, 80.0))).astype(np.float32)
         # curvature of q relative to its minimum: model d² = (u − μ)²·cq

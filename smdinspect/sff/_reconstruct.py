@@ -404,10 +404,11 @@ def _level(tracker: PeakTracker, z_mm: np.ndarray, config: FocusConfig, *, windo
             chosen = float(config.fit_power)
             curve_out.update(power=chosen)
         if abs(chosen / power - 1) > 0.05:
-            other = fit_peaks(tracker, z_mm, method=config.fit, workers=config.workers,
-                              power=chosen)
-            np.copyto(fit.height_mm, other.height_mm, where=fit.interior & other.interior)
-            del other
+            height, interior = fit_peaks(tracker, z_mm, method=config.fit,
+                                         workers=config.workers, power=chosen,
+                                         heights_only=True)
+            np.copyto(fit.height_mm, height, where=fit.interior & interior)
+            del height, interior
     tracker.release_curves()  # the fit holds what is needed from here on
     cues = confidence_cues(fit, window_px=window_px, noise_spread_gain=noise_gain)
     confidence = confidence_map(fit, window_px=window_px, cues=cues)
