@@ -107,3 +107,28 @@ def test_tracker_memory_is_constant_in_frames():
         tr = PeakTracker((50, 60), n, half_width=3)
         return sum(a.nbytes for a in vars(tr).values() if isinstance(a, np.ndarray))
     assert state_bytes(10) == state_bytes(1000)
+
+
+@pytest.mark.parametrize("shape", [(20, 20), (300, 300)])  # one block; blocks in threads
+def test_heights_only_fit_is_the_full_fit_heights(shape, monkeypatch):
+    """fit_peaks(heights_only=True) gives the full fit's heights and interior mask, in
+    one block and in row blocks fitted by threads (the second fit of the chosen curve
+    shape in reconstruct relies on it)."""
+    import smdinspect.sff._depth as depth
+
+    monkeypatch.setattr(depth, "FIT_BLOCK_PX", 300 * 64)  # 300 x 300 -> 5 blocks
+    rng = np.random.default_rng(7)
+    z = np.arange(12) * 0.05
+    mu = rng.uniform(0.0, 0.6, shape)  # some peaks on the first / last frame
+    sigma = rng.uniform(0.04, 0.1, shape)
+    amp = rng.uniform(10, 1000, shape)
+    vol = _gauss_curves(z, mu, sigma, amp, floor=2.0)
+    vol += rng.normal(0, 3.0, vol.shape).astype(np.float32)
+    tr = _track(np.maximum(vol, 0))
+    for p in (1.0, 3.0):
+        full = fit_peaks(tr, z, method=FitMethod.POWER, power=p, workers=2)
+        height, interior = fit_peaks(tr, z, method=FitMethod.POWER, power=p, workers=2,
+                                     heights_only=True)
+        assert 0 < interior.sum() < interior.size
+        np.testing.assert_array_equal(interior, full.interior)
+        np.testing.assert_array_equal(height, full.height_mm)
