@@ -130,7 +130,9 @@ def run_case(name: str, seed: int, mode: str, tmp: Path) -> dict:
             "verdict": j.verdict.value if j is not None else "not_located",
             "reason": j.reason if j is not None else out.get("reason", ""),
             "measured_max_mm": None if j is None or not math.isfinite(j.measured_max_mm)
-            else round(j.measured_max_mm, 4)})
+            else round(j.measured_max_mm, 4),
+            "gap_mm": None if j is None or j.gap_height_mm is None
+            or not math.isfinite(j.gap_height_mm) else round(j.gap_height_mm, 4)})
     return out
 
 

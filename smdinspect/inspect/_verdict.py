@@ -42,7 +42,9 @@ Joint level
 8. ``unreliable``: fewer than ``min_reliable_fraction`` of the solder area's pixels are
    reliable, or no max height could be measured. Never a pass or a fail.
 9. ``bridge``: a path across the gap to a neighbouring pad of the same component is
-   covered higher than ``bridge_height_mm`` along ``bridge_min_fraction`` of its length.
+   covered higher than ``bridge_height_mm`` (``bridge_lead_height_mm`` between the feet
+   of a gull-wing part, far from any body edge) along ``bridge_min_fraction`` of its
+   length.
 10. ``missing`` without a colour cue: the max height is below ``missing_height_mm``.
 11. ``insufficient``: below the joint's ``min_height_mm``.
 12. ``excess``: above the joint's ``max_height_mm``.
@@ -230,10 +232,11 @@ def _joint_rule(joint, comp, m: JointMeasurement, comp_result: ComponentResult,
     if m.reliable_fraction < config.min_reliable_fraction or not math.isfinite(m.max_mm):
         return Verdict.UNRELIABLE, (f"only {m.reliable_fraction:.0%} of the solder area is reliable "
                                     f"(< {config.min_reliable_fraction:.0%}); not judged")
-    if math.isfinite(m.gap_mm) and m.gap_mm > config.bridge_height_mm:
+    bridge = config.bridge_lead_height_mm if comp.kind == "gullwing" else config.bridge_height_mm
+    if math.isfinite(m.gap_mm) and m.gap_mm > bridge:
         return Verdict.BRIDGE, (f"solder across the gap to {m.gap_neighbour}: "
                                 f"{config.bridge_min_fraction:.0%} of a path stands above "
-                                f"{_um(m.gap_mm)} (> {_um(config.bridge_height_mm)})")
+                                f"{_um(m.gap_mm)} (> {_um(bridge)})")
     h, u = m.max_mm, m.u_max_mm
     pm = f" ± {_um(u)}" if math.isfinite(u) else ""
     how = f" ({m.max_method})" if m.max_method else ""

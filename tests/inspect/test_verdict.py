@@ -98,3 +98,25 @@ def test_without_colour_a_flat_pad_is_missing_and_a_low_fillet_insufficient(c2):
     r = _judge(c2, max_mm=joint.min_height_mm - 0.02, max_method="percentile",
                observed_mm=joint.min_height_mm - 0.02)
     assert r.verdict is Verdict.INSUFFICIENT
+
+
+def test_gap_limit_is_lower_between_gull_wing_feet(c2):
+    """A raised path between two gull-wing feet is a bridge from bridge_lead_height_mm
+    (far from any body edge, the noise is a few µm); along a chip's side, whose gap the
+    body's blurred edge lifts, only from bridge_height_mm."""
+    board = load_board(DEMO)
+    u1, j = board.component("U1"), board.joint("U1.7")
+    body = ComponentResult(ref="U1", kind="gullwing", package=u1.package, verdict=Verdict.OK,
+                           reason="", present_fraction=1.0, body_height_mm=1.5,
+                           offset_mm=(0.0, 0.0), tilt_deg=0.0, reliable_fraction=0.9)
+    cfg = InspectConfig()
+    assert cfg.bridge_lead_height_mm < 0.038 < cfg.bridge_height_mm
+    def gap(joint, comp, comp_body, z):
+        m = JointMeasurement(joint.id, (0.0, 0.0), 200, 0.8, max_mm=joint.nominal_height_mm,
+                             max_method="foot", gap_mm=z, gap_neighbour="X")
+        return judge_joint(joint, comp, m, comp_body, cfg).verdict
+    assert gap(j, u1, body, 0.038) is Verdict.BRIDGE     # a 78 µm bridge read 38 µm
+    assert gap(j, u1, body, 0.010) is Verdict.OK
+    chip, comp, chip_body = c2
+    assert gap(chip, comp, chip_body, 0.038) is not Verdict.BRIDGE
+    assert gap(chip, comp, chip_body, 0.060) is Verdict.BRIDGE
