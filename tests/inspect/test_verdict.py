@@ -111,6 +111,7 @@ def test_gap_limit_is_lower_between_gull_wing_feet(c2):
                            offset_mm=(0.0, 0.0), tilt_deg=0.0, reliable_fraction=0.9)
     cfg = InspectConfig()
     assert cfg.bridge_lead_height_mm < 0.038 < cfg.bridge_height_mm
+
     def gap(joint, comp, comp_body, z):
         m = JointMeasurement(joint.id, (0.0, 0.0), 200, 0.8, max_mm=joint.nominal_height_mm,
                              max_method="foot", gap_mm=z, gap_neighbour="X")
