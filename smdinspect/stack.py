@@ -31,6 +31,7 @@ import json
 import logging
 import math
 import os
+import re
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, Iterator, Sequence
@@ -191,6 +192,44 @@ class FocalStack:
         return cls._sorted(frames, pixel_size_mm=pixel_size_mm, root=None)
 
     @classmethod
+    def from_named_images(
+        cls,
+        paths: Sequence[str | os.PathLike],
+        *,
+        pattern: str,
+        pixel_size_mm: float | None = None,
+    ) -> "FocalStack":
+        """A stack from image files whose names hold their z (mm).
+
+        ``pattern`` is a regular expression searched in each file name; its first group
+        (the whole match if it has none) is the frame's z, e.g. ``Z(-?[0-9.]+)`` for
+        ``XP005_Z-020.jpg`` (z = −20 mm). Frames are put in z order whatever their names'
+        order.
+        """
+        try:
+            rx = re.compile(pattern)
+        except re.error as exc:
+            raise InputError(f"--z-from-name: not a regular expression ({exc}): {pattern!r}") from None
+        frames = []
+        for p in map(Path, paths):
+            if not p.is_file():
+                raise InputError(f"frame file not found: {p}")
+            m = rx.search(p.name)
+            if m is None:
+                raise InputError(f"{p.name}: --z-from-name {pattern!r} does not match the file name")
+            text = m.group(1) if rx.groups else m.group(0)
+            try:
+                z = float(text)
+            except (TypeError, ValueError):
+                raise InputError(f"{p.name}: --z-from-name {pattern!r} found {text!r}, "
+                                 "not a number of mm") from None
+            if not math.isfinite(z):
+                raise InputError(f"{p.name}: z {text!r} is not a finite number of mm")
+            frames.append(Frame(p, z))
+        frames.sort(key=lambda f: f.z_mm)
+        return cls._sorted(frames, pixel_size_mm=pixel_size_mm, root=None)
+
+    @classmethod
     def _sorted(cls, frames: list[Frame], **kwargs: Any) -> "FocalStack":
         z = np.array([f.z_mm for f in frames])
         if len(frames) >= 2:
@@ -248,11 +287,14 @@ def open_stack(
     *,
     step_mm: float | None = None,
     pixel_size_mm: float | None = None,
+    z_from_name: str | None = None,
 ) -> FocalStack:
     """Open what a user passed on the command line.
 
     One directory with ``stack.json`` opens as a stack; one directory without it, or a
-    list of image files, needs ``step_mm`` (images in a directory are taken in name order).
+    list of image files, needs ``step_mm`` (images in a directory are taken in name order)
+    or ``z_from_name``, a regular expression finding each frame's z in its file name
+    (:meth:`FocalStack.from_named_images`).
     """
     paths = [Path(p) for p in inputs]
     if not paths:
@@ -265,6 +307,9 @@ def open_stack(
         if not folder.is_dir():
             raise InputError(f"no such folder: {folder}")
         if (folder / MANIFEST).is_file():
+            if z_from_name is not None:
+                raise InputError(f"{folder} has {MANIFEST} (its frames' z are recorded): "
+                                 "--z-from-name is for image files")
             stack = FocalStack.open(folder)
             if pixel_size_mm is not None:
                 stack = _replace_pixel(stack, pixel_size_mm)
@@ -272,10 +317,16 @@ def open_stack(
         paths = sorted(p for p in folder.iterdir() if p.suffix.lower() in IMAGE_SUFFIXES)
         if not paths:
             raise InputError(f"{folder} has neither {MANIFEST} nor image files")
+    if z_from_name is not None:
+        if step_mm is not None:
+            raise InputError("give --step-mm or --z-from-name, not both")
+        return FocalStack.from_named_images(paths, pattern=z_from_name,
+                                            pixel_size_mm=pixel_size_mm)
     if step_mm is None:
         what = (f"{folder} has no {MANIFEST}; its {len(paths)} images" if folder is not None
                 else "a list of images")
-        raise InputError(f"{what} need --step-mm (the focus step between frames)")
+        raise InputError(f"{what} need --step-mm (the focus step between frames) or "
+                         "--z-from-name (a pattern finding each frame's z in its name)")
     stack = FocalStack.from_images(paths, step_mm=step_mm, pixel_size_mm=pixel_size_mm)
     if folder is not None:
         log.info("%s has no %s: taking its %d images %s .. %s in name order as frames %g mm "

@@ -107,6 +107,52 @@ def test_image_list_needs_step_and_accepts_negative(tmp_path):
         open_stack([tmp_path / "missing.png", *paths], step_mm=0.1)
 
 
+def test_z_from_file_names(tmp_path):
+    """--z-from-name: each frame's z from its name (the flat-target-zknown convention,
+    XP005_Z-020.jpg = -20 mm), in z order whatever the names' order; clear errors."""
+    img = np.full((12, 12), 128, np.uint8)
+    for z in (20, 21, 23, 22):
+        cv2.imwrite(str(tmp_path / f"XP005_Z-{z:03d}.png"), img)
+    stack = open_stack([tmp_path], z_from_name=r"Z(-?[0-9.]+)")
+    np.testing.assert_allclose(stack.z_mm, [-23, -22, -21, -20])
+    assert [f.path.name for f in stack.frames][0] == "XP005_Z-023.png"
+    no_group = open_stack(sorted(tmp_path.glob("*.png")), z_from_name=r"-?[0-9]+(?=\.png)")
+    np.testing.assert_allclose(no_group.z_mm, stack.z_mm)
+    with pytest.raises(InputError, match="does not match"):
+        open_stack([tmp_path], z_from_name=r"Q([0-9]+)")
+    with pytest.raises(InputError, match="not a number"):
+        open_stack([tmp_path], z_from_name=r"(XP)")
+    with pytest.raises(InputError, match="not a regular expression"):
+        open_stack([tmp_path], z_from_name=r"Z(")
+    with pytest.raises(InputError, match="not both"):
+        open_stack([tmp_path], z_from_name=r"Z(-?[0-9.]+)", step_mm=1.0)
+    cv2.imwrite(str(tmp_path / "XP005_Z-022b.png"), img)  # z -22 twice
+    with pytest.raises(InputError, match="duplicate z_mm"):
+        open_stack([tmp_path], z_from_name=r"Z(-?[0-9]+)")
+
+
+def test_z_from_name_on_the_command_line(tmp_path):
+    from smdinspect import cli
+
+    src = tmp_path / "frames"
+    src.mkdir()
+    from smdinspect.synth import cone, render_gather, texture
+
+    tex = texture("grain", 96, seed=10_500, freq_cyc_px=0.2, contrast=0.25)
+    radiance, height = cone(size_px=96, low_mm=0.05, high_mm=0.25, texture=tex, seed=10_500)
+    z = np.arange(7) * 0.05
+    for zk, frame in zip(z, render_gather(radiance, height, z, blur_px_per_mm=7.0)):
+        cv2.imwrite(str(src / f"shot_z{zk:.2f}mm.png"), frame)
+    out = tmp_path / "out"
+    assert cli.main(["-q", "reconstruct", str(src), "--z-from-name", r"z([0-9.]+)mm",
+                     "--outputs", "height_mm.tiff", "--out", str(out)]) == 0
+    summary = json.loads((out / "summary.json").read_text())
+    np.testing.assert_allclose(summary["z_range_mm"], [0.0, 0.30])
+    assert cli.main(["-q", "reconstruct", str(src), "--z-from-name", "nope([0-9])",
+                     "--out", str(tmp_path / "o2")]) == 2
+    assert not (tmp_path / "o2").exists()
+
+
 def test_read_image_kinds_and_errors(tmp_path):
     _write_frames(tmp_path / "c", n=1, colour=True)
     _write_frames(tmp_path / "g16", n=1, dtype=np.uint16)

@@ -127,8 +127,9 @@ def run(args: argparse.Namespace) -> int:
     from ..pipeline import inspection_focus_config
     from .reconstruct import focus_config_from
 
-    if args.step_mm is not None:
-        raise InputError("--step-mm is not used by grr: give stack folders with stack.json")
+    if args.step_mm is not None or args.z_from_name is not None:
+        raise InputError("--step-mm and --z-from-name are not used by grr: give stack folders "
+                         "with stack.json")
     if not (math.isfinite(args.fail_above) and args.fail_above > 0):
         raise InputError(f"--fail-above must be > 0 (percent); got {args.fail_above}")
     stacks, operators = _sweeps(args)

@@ -17,6 +17,10 @@ def add_stack_arguments(p: argparse.ArgumentParser) -> None:
                    help="a stack directory (with stack.json) or image files in focus order")
     p.add_argument("--step-mm", type=float, default=None,
                    help="focus step between listed images (mm); needed for image lists")
+    p.add_argument("--z-from-name", default=None, metavar="REGEX",
+                   help="read each listed image's z (mm) from its file name: the first group "
+                        "of REGEX, e.g. 'Z(-?[0-9.]+)' for XP005_Z-020.jpg (instead of "
+                        "--step-mm)")
     p.add_argument("--pixel-size-mm", type=float, default=None,
                    help="object-side pixel size (mm); overrides stack.json")
     p.add_argument("--operator", default="sml", choices=(*OPERATORS, "auto"), metavar="OP",
@@ -107,7 +111,8 @@ def run(args: argparse.Namespace) -> int:
     if unknown:
         raise InputError(f"--outputs: unknown {', '.join(unknown)}; choose from "
                          f"{', '.join(RECONSTRUCTION_OUTPUTS)} (or all)")
-    stack = open_stack(args.stack, step_mm=args.step_mm, pixel_size_mm=args.pixel_size_mm)
+    stack = open_stack(args.stack, step_mm=args.step_mm, pixel_size_mm=args.pixel_size_mm,
+                       z_from_name=args.z_from_name)
     auto = resolve_auto_operator(args, stack)  # --operator auto: the texture study's pick
     config = focus_config_from(args)
     if stack.pixel_size_mm is None:
