@@ -113,7 +113,7 @@ def run_flat(args: argparse.Namespace) -> int:
     out = _default_out(args)
     pixel = args.pixel_size_mm
     stack = open_stack(args.stack, step_mm=args.step_mm, pixel_size_mm=pixel,
-                               z_from_name=args.z_from_name)
+                       z_from_name=args.z_from_name)
     if stack.pixel_size_mm is None:
         pixel = _rig_pixel_size(args.rig)
         if pixel is not None:

@@ -80,7 +80,7 @@ def run(args: argparse.Namespace) -> int:
             carry = RECONSTRUCTION_OUTPUTS  # the reports join the reconstruction they read
     else:
         stack = open_stack(args.stack, step_mm=args.step_mm, pixel_size_mm=args.pixel_size_mm,
-                               z_from_name=args.z_from_name)
+                           z_from_name=args.z_from_name)
         source, shape = None, stack.read_frame(0).shape[:2]
     if stack.pixel_size_mm is None:
         raise InputError("inspection needs the pixel size in mm: give --pixel-size-mm "
