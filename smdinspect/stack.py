@@ -183,10 +183,7 @@ class FocalStack:
         step = _finite_number(step_mm, "step_mm")
         if step == 0:
             raise InputError("step_mm must be non-zero; got 0")
-        paths = [Path(p) for p in paths]
-        for p in paths:
-            if not p.is_file():
-                raise InputError(f"frame file not found: {p}")
+        paths = _frame_files(paths)
         low = min(0.0, (len(paths) - 1) * step)
         frames = [Frame(p, round(z0_mm + n * step - low, 12)) for n, p in enumerate(paths)]
         return cls._sorted(frames, pixel_size_mm=pixel_size_mm, root=None)
@@ -211,9 +208,7 @@ class FocalStack:
         except re.error as exc:
             raise InputError(f"--z-from-name: not a regular expression ({exc}): {pattern!r}") from None
         frames = []
-        for p in map(Path, paths):
-            if not p.is_file():
-                raise InputError(f"frame file not found: {p}")
+        for p in _frame_files(paths):
             m = rx.search(p.name)
             if m is None:
                 raise InputError(f"{p.name}: --z-from-name {pattern!r} does not match the file name")
@@ -280,6 +275,15 @@ class FocalStack:
         """Yield ``(index, z_mm, image)`` one frame at a time, ascending z."""
         for i, f in enumerate(self.frames):
             yield i, f.z_mm, self.read_frame(i)
+
+
+def _frame_files(paths: Sequence[str | os.PathLike]) -> list[Path]:
+    """The listed frame files as Paths; InputError naming the first that is missing."""
+    out = [Path(p) for p in paths]
+    for p in out:
+        if not p.is_file():
+            raise InputError(f"frame file not found: {p}")
+    return out
 
 
 def open_stack(

@@ -123,8 +123,8 @@ def run(args: argparse.Namespace) -> int:
     from ..cli import progress_callback
     from ..errors import InputError
     from ..grr import analyse_grr, inspect_for_grr, read_records, write_grr
-    from .inspect import inspect_config_from
     from ..pipeline import inspection_focus_config
+    from .inspect import inspect_config_from
     from .reconstruct import focus_config_from
 
     if args.step_mm is not None or args.z_from_name is not None:

@@ -64,10 +64,10 @@ def run(args: argparse.Namespace) -> int:
     from ..inspect import REPORT_FILES
     from ..inspect._board import check_board_in_field
     from ..inspect._cfx import CFX_FILE
-    from ..pipeline import inspect_stack, is_reconstruction, load_reconstruction
+    from ..pipeline import (inspect_stack, inspection_focus_config, is_reconstruction,
+                            load_reconstruction)
     from ..sff._export import RECONSTRUCTION_OUTPUTS
     from ..stack import open_stack
-    from ..pipeline import inspection_focus_config
     from .reconstruct import focus_config_from
 
     board = load_any_board(args.board)  # a board JSON, or a CAD file imported on the fly

@@ -264,9 +264,10 @@ def select_curve_power(tracker: PeakTracker, z_mm: np.ndarray, *, power: float) 
     scores = {}
     for m in POWER_CANDIDATES:
         pw = power * m
-        fit = _fit_block(*args, z_mm, k=k, method=FitMethod.POWER, power=pw)
-        pos = np.interp(fit.height_mm, z_mm, np.arange(len(z_mm), dtype=np.float64)).astype(np.float32)
-        good = (fit.interior & clear).astype(np.uint8)
+        height, interior = _fit_block(*args, z_mm, k=k, method=FitMethod.POWER, power=pw,
+                                      heights_only=True)
+        pos = np.interp(height, z_mm, np.arange(len(z_mm), dtype=np.float64)).astype(np.float32)
+        good = (interior & clear).astype(np.uint8)
         good = cv2.erode(good, np.ones((3, 3), np.uint8)).view(bool)
         gx = cv2.Sobel(pos, cv2.CV_32F, 1, 0, ksize=3, scale=0.125)
         gy = cv2.Sobel(pos, cv2.CV_32F, 0, 1, ksize=3, scale=0.125)
