@@ -273,7 +273,8 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--quick", action="store_true", help="skip the CLI timing")
     p.add_argument("--data", type=Path, default=REPO.parent / "shared" / "data")
     p.add_argument("--operator", default=None, help="focus operator (default: FocusConfig's)")
-    p.add_argument("--prefilter", default="0", help="noise pre-filter σ px or 'auto' (default 0)")
+    p.add_argument("--prefilter", default=None,
+                   help="noise pre-filter σ px or 'auto' (default: FocusConfig's, auto)")
     p.add_argument("--set", action="append", default=[], metavar="FIELD=VALUE",
                    help="override a FocusConfig field (repeatable), e.g. --set coarse_factor=8")
     args = p.parse_args(argv)
@@ -286,15 +287,16 @@ def main(argv: list[str] | None = None) -> int:
             print(f"error: data folder not found: {args.data / name}", file=sys.stderr)
             return 2
 
-    prefilter = args.prefilter if args.prefilter == "auto" else float(args.prefilter)
     overrides = {}
+    if args.prefilter is not None:
+        overrides["prefilter_px"] = args.prefilter if args.prefilter == "auto" else float(args.prefilter)
     for item in args.set:
         key, sep, value = item.partition("=")
         if not sep or key not in FocusConfig.__dataclass_fields__:
             p.error(f"--set {item}: expected FIELD=VALUE with a FocusConfig field")
         overrides[key] = json.loads(value) if value[:1] in "-0123456789tfn[" else value
-    config = FocusConfig(align=True, prefilter_px=prefilter,
-                         **({"operator": args.operator} if args.operator else {}), **overrides)
+    config = FocusConfig(align=True, **({"operator": args.operator} if args.operator else {}),
+                         **overrides)
     print(f"load average {' '.join(f'{x:.2f}' for x in os.getloadavg())} on {os.cpu_count()} CPUs; "
           f"config {config.to_dict()}")
     results = {}

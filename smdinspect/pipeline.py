@@ -120,11 +120,17 @@ def inspection_focus_config():
     The operator's curve shape (``fit_power=None``), not one chosen per sweep: the choice
     varies with the placement and adds to the gauge's spread (demo board, 6 re-placed
     sweeps: %GR&R SOIC-8 / 0805 / 0603 4.6 / 5.1 / 7.7 % fixed, 5.5 / 5.9 / 8.2 % chosen).
+    No noise pre-filter (``prefilter_px=0``): it widens the 5-px footprint that the
+    fillet profiles and the gauge figures above were measured with. No precision cue
+    (``precision_check``): a joint is a robust fit over its pad's pixels, and dropping
+    the noisier fillet pixels left gull-wing heels without readings (demo-board GR&R,
+    3 sweeps: SOIC-8 parts read 8 -> 6).
     """
     from .sff import FocusConfig
 
     return FocusConfig(window_px=5, halo_ratio=8.0, coarse_factor=0, support_steps=0,
-                       own_window_px=0, edge_gap_check=False, fit_power=None)
+                       own_window_px=0, edge_gap_check=False, fit_power=None, prefilter_px=0.0,
+                       precision_check=False)
 
 
 def inspect_stack(

@@ -37,10 +37,10 @@ def add_stack_arguments(p: argparse.ArgumentParser) -> None:
                    help="pixels below this confidence are unreliable (default 0.5)")
     p.add_argument("--align", action="store_true",
                    help="register frames first (ordinary, non-telecentric lenses)")
-    p.add_argument("--prefilter", default="0", metavar="auto|PX",
+    p.add_argument("--prefilter", default=None, metavar="auto|PX",
                    help="Gaussian σ (px) smoothing each frame before the focus measure, against "
-                        "sensor noise; 'auto' picks it from the sweep's noise-only frequencies "
-                        "(default 0: off)")
+                        "sensor noise; 'auto' picks it from the sweep's noise-only frequencies, "
+                        "0 turns it off (default: auto for reconstruct, 0 for inspect and grr)")
     p.add_argument("--coarse-levels", type=int, default=1, choices=(1, 2, 3), metavar="N",
                    help="coarse focus levels (4x, 16x, 64x blocks) filling what finer ones left "
                         "unreliable; 2 helps smooth, weakly textured parts (default 1)")
@@ -71,11 +71,12 @@ def focus_config_from(args: argparse.Namespace, base=None):
 
     if args.operator == "auto":  # reconstruct resolves it first (_cli/study.py)
         raise InputError("--operator auto is only available in smdinspect reconstruct")
-    prefilter = prefilter_value(getattr(args, "prefilter", "0"))
     given = dict(operator=args.operator, window_px=args.window_px, fit=args.fit,
                  fit_half_width=args.fit_half_width, min_confidence=args.min_confidence,
-                 prefilter_px=prefilter, align=args.align, workers=args.workers,
+                 align=args.align, workers=args.workers,
                  coarse_levels=getattr(args, "coarse_levels", 1))
+    if getattr(args, "prefilter", None) is not None:  # else the base's (or the default)
+        given["prefilter_px"] = prefilter_value(args.prefilter)
     return dataclasses.replace(base, **given) if base is not None else FocusConfig(**given)
 
 

@@ -6,7 +6,8 @@ load them when called.
 
 from ._align import Alignment, estimate_alignment
 from ._config import FitMethod, FocusConfig
-from ._confidence import borrowed_mask, confidence_map, depth_edge_mask, unsupported_mask
+from ._confidence import (borrowed_mask, confidence_map, depth_edge_mask, precision_steps,
+                          unsupported_mask)
 from ._depth import PeakFit, PeakTracker, centroid_correction, fit_peaks
 from ._export import (
     height_field_mesh,
@@ -42,6 +43,7 @@ __all__ = [
     "height_field_mesh",
     "noise_sigma",
     "pixel_to_xy_mm",
+    "precision_steps",
     "prefilter_sigma",
     "reconstruct",
     "render_height_png",

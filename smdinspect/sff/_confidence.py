@@ -1,6 +1,6 @@
 """Per-pixel confidence in [0, 1] from the fitted focus peak.
 
-Five cues, each mapped to [0, 1] by a smooth ramp and multiplied (R over the fit's
+Six cues, each mapped to [0, 1] by a smooth ramp and multiplied (R over the fit's
 support only: a 3-sample fit is exact and R does not judge it):
 
 * **Reliability R** (Pertuz et al.): 20·log10(F_peak / mean|F − model|) over the ±k
@@ -24,6 +24,10 @@ support only: a 3-sample fit is exact and R does not judge it):
   A. One surface point has a unimodal focus curve; two modes mean two depths in the
   window (a defocused edge's blur next to weak texture) or noise, and in a short stack
   (7 frames, k = 3) the ambiguity above sees nothing. Ramp from 1 at 0.15 to 0 at 0.35.
+
+* **Precision** (when :func:`precision_steps` is given): the heights' random error
+  from the even/odd split of each curve, the noise's part only. Ramp from 1 at
+  σ = 0.2 Δd to 0 at 0.4 Δd; unknown (curves too narrow to split) is not judged.
 
 Finally, **depth edges**: a focus window that straddles a height step mixes two depths,
 and the sharp edge of the higher part (a component body) wins over the weak texture of
@@ -52,13 +56,24 @@ import numpy as np
 from ._depth import PeakFit
 
 __all__ = ["blur_px_per_frame", "borrowed_mask", "confidence_map", "defocus_halo_mask",
-           "depth_edge_mask", "halo_mask", "step_levels", "unsupported_mask"]
+           "depth_edge_mask", "halo_mask", "precision_steps", "step_levels",
+           "unsupported_mask"]
 
 R_LOW_DB, R_HIGH_DB = 14.0, 26.0
 WIDTH_OK, WIDTH_BAD = 2.0, 4.0
 AMBIG_OK, AMBIG_BAD = 0.35, 0.70
 SECOND_OK, SECOND_BAD = 0.15, 0.35
 SNR_BAD, SNR_OK = 1.2, 2.2
+#: Side of the square (in focus windows) over which :func:`precision_steps` averages the
+#: split differences. The windows around a pixel share its noise, so one window holds
+#: about one independent draw; 3 × 3 windows hold about nine, and the precision is a
+#: property of a region's texture and noise, not of one pixel.
+PRECISION_BOX_WINDOWS = 3
+#: Precision cue ramp (1σ, frame steps): 1 at 0.2 Δd, 0 at 0.4 Δd, 0.5 at 0.3 Δd, where
+#: an error of one step is 3.3σ.
+PRECISION_OK, PRECISION_BAD = 0.2, 0.4
+#: Share of a square that must hold split estimates for its precision to be told.
+PRECISION_MIN_SHARE = 0.3
 #: Below this share of its own peak (above the floor), a small window centred on the
 #: pixel says the main window's peak frame is not where the pixel's own texture is sharp.
 OWN_SHARE_MIN = 0.2
@@ -99,9 +114,11 @@ def confidence_map(fit: PeakFit, *, window_px: int = 9,
     return conf
 
 
-def confidence_cues(fit: PeakFit, *, window_px: int = 9,
-                    noise_spread_gain: float = 1.0) -> dict[str, np.ndarray]:
-    """The five cues of :func:`confidence_map`, each (H, W) in [0, 1].
+def confidence_cues(fit: PeakFit, *, window_px: int = 9, noise_spread_gain: float = 1.0,
+                    precision: np.ndarray | None = None) -> dict[str, np.ndarray]:
+    """The cues of :func:`confidence_map`, each (H, W) in [0, 1]: five from the fit, and
+    a sixth, ``precision``, when the heights' random error (steps, NaN unknown:
+    :func:`precision_steps`) is given.
 
     The noise test: on a textureless pixel the focus curve is the
     sensor noise's focus measure, whose frame-to-frame spread relative to its mean falls
@@ -129,10 +146,39 @@ def confidence_cues(fit: PeakFit, *, window_px: int = 9,
         snr = np.nan_to_num(fit.f_best / fit.floor, nan=0.0, posinf=1e6) * (window_px / 9.0)
     if noise_spread_gain != 1.0:
         snr = snr / np.float32(noise_spread_gain)
-    return {"reliability": c_r, "width": c_w,
+    cues = {"reliability": c_r, "width": c_w,
             "ambiguity": _ramp(fit.ambiguity, AMBIG_BAD, AMBIG_OK),
             "second_mode": _ramp(fit.second_mode, SECOND_BAD, SECOND_OK),
             "noise": _ramp(snr, SNR_BAD, SNR_OK)}
+    if precision is not None:  # unknown (NaN): not judged
+        cues["precision"] = _ramp(np.nan_to_num(precision, nan=0.0), PRECISION_BAD, PRECISION_OK)
+    return cues
+
+
+def precision_steps(split_steps: np.ndarray, *, box_px: int) -> np.ndarray:
+    """(H, W) float32: 1σ random error of the measured heights, in frame steps; NaN
+    where it cannot be told (fewer than :data:`PRECISION_MIN_SHARE` of the square hold a
+    split estimate: narrow curves, at steps coarse against the depth of field, where a
+    half of the samples misses the peak).
+
+    From the even/odd split of each focus curve (:attr:`PeakFit.split_steps`): the
+    difference d of the two halves' peaks has the variance of both halves, each fitted
+    from half the samples, i.e. about four times the full fit's: σ = √mean(d²)/2 over a
+    ``box_px`` square. Only the random part: what every frame shares (a window mixing
+    two depths, a halo, a wrong curve shape) cancels out of d and is the other cues'.
+    """
+    import cv2
+
+    d = np.asarray(split_steps, np.float32)
+    have = np.isfinite(d).astype(np.float32)
+    d2 = np.where(have > 0, d * d, 0).astype(np.float32)
+    size = (box_px, box_px)
+    share = cv2.blur(have, size, borderType=cv2.BORDER_REFLECT)
+    with np.errstate(divide="ignore", invalid="ignore"):
+        mean = cv2.blur(d2, size, borderType=cv2.BORDER_REFLECT) / share
+    sigma = np.sqrt(np.maximum(mean, 0)) * np.float32(0.5)
+    sigma[~(share >= PRECISION_MIN_SHARE)] = np.nan
+    return sigma.astype(np.float32)
 
 
 def borrowed_mask(share: np.ndarray, ratio: np.ndarray, *, own_px: int,

@@ -77,13 +77,14 @@ class FocusConfig:
         σ (px) of a Gaussian applied to each grey frame before the focus operator, to keep
         a derivative operator off the frequencies where the sensor noise outweighs the
         texture. ``"auto"`` measures the sweep's noise-only bands and picks σ
-        (0 when there are none; see :func:`smdinspect.sff.prefilter_sigma`); 0 turns it
-        off (the default). With ``align`` σ is in the reference frame's pixels. Measured
-        (benchmarks/accuracy.py, benchmarks/real_stacks.py): "auto" brings the noisy
-        cone from 0.24 to 0.10 Δd and metal-bore from 36 to 46 % coverage, but on the
-        noise-dominated random cases it makes 10 % of them reliable with only 95 % of
-        those within 1 Δd (99.97 % without): the confidence does not yet see the error a
-        pre-filtered footprint makes there, so it is not the default.
+        (0 when there are none; see :func:`smdinspect.sff.prefilter_sigma`; the
+        default); 0 turns it off. With ``align`` σ is in the reference frame's pixels.
+        Its heights are judged by the precision cue (the even/odd split of each curve,
+        :func:`smdinspect.sff.precision_steps`), which sees the noise a pre-filtered
+        footprint still leaves. Measured (benchmarks/accuracy.py,
+        benchmarks/real_stacks.py): 48 noise-dominated randomised tuning cases 0.7 % →
+        9.5 % coverage with 96.4 → 99.2 % of the reliable heights within 1 Δd;
+        metal-bore 36 → 44 % coverage.
     centroid_correction : bool
         A window on a slope measures the height under its focus energy's centroid, not
         under its centre: move each fine-level height by the local slope times the
@@ -94,6 +95,12 @@ class FocusConfig:
         a second square of ``window_px + 2`` px for a rise of the same slope
         (``edge_jump_steps`` per 5 px; see :func:`smdinspect.sff.depth_edge_mask`).
         Default on.
+    precision_check : bool
+        Judge each height's random error (the precision cue: the even/odd split of its
+        focus curve, :func:`smdinspect.sff.precision_steps`): unreliable where its 1σ
+        exceeds about 0.3 Δd. The precision is reported either way
+        (``Surface.precision_mm``, ``precision_mm.tiff``). Default on; off for
+        inspection, which fits each joint over many pixels and propagates their noise.
     fit_power : "auto", float or None
         Exponent p of the ``power`` fit's model for the heights. The shape of the focus
         curve is the sweep's (texture spectrum and blur): a broadband texture follows the
@@ -138,10 +145,11 @@ class FocusConfig:
     support_steps: float = 1.5
     coarse_factor: int = 4
     coarse_levels: int = 1
-    prefilter_px: float | str = 0.0
+    prefilter_px: float | str = "auto"
     centroid_correction: bool = True
     own_window_px: int = 5
     edge_gap_check: bool = True
+    precision_check: bool = True
     align: bool = False
     workers: int = 2
 
@@ -187,6 +195,8 @@ class FocusConfig:
                              f'got {self.fit_power!r}')
         if not isinstance(self.edge_gap_check, bool):
             raise InputError(f"edge_gap_check must be true or false; got {self.edge_gap_check!r}")
+        if not isinstance(self.precision_check, bool):
+            raise InputError(f"precision_check must be true or false; got {self.precision_check!r}")
         if not isinstance(self.own_window_px, int) or self.own_window_px < 0 or (
                 self.own_window_px and self.own_window_px % 2 == 0):
             raise InputError(f"own_window_px must be 0 (off) or an odd integer; "

@@ -37,7 +37,8 @@ MESH_MAX_SIDE = 384  # the exported height-field mesh is at most this many verti
 
 #: Every file :func:`write_reconstruction` may write.
 RECONSTRUCTION_OUTPUTS = (
-    "height_mm.tiff", "confidence.tiff", "sigma_mm.tiff", "aif.png", "height_filled_mm.tiff",
+    "height_mm.tiff", "confidence.tiff", "sigma_mm.tiff", "precision_mm.tiff", "aif.png",
+    "height_filled_mm.tiff",
     "sigma_filled_mm.tiff", "filled.png", "field.png", "height.png", "view3d.png", "cloud.ply",
     "mesh.ply", "mesh.stl", "summary.json",
 )
@@ -361,6 +362,8 @@ def write_reconstruction(
             out / "confidence.tiff", np.asarray(surface.confidence, f32))),
         (("sigma_mm.tiff",), lambda: _atomic.write_tiff(
             out / "sigma_mm.tiff", np.asarray(surface.sigma_mm, f32))),
+        (("precision_mm.tiff",), lambda: _atomic.write_tiff(
+            out / "precision_mm.tiff", _precision_plane(surface))),
         (("field.png",), lambda: _atomic.write_image(out / "field.png", _mask_png(surface.field))),
         (("mesh.ply", "mesh.stl"), mesh),
         (("height_filled_mm.tiff",), lambda: _atomic.write_tiff(
@@ -386,6 +389,7 @@ def write_reconstruction(
         "measured": measured,
         "coverage": round(surface.coverage, 4),
         "height_mm": stats["height_mm"],
+        "precision_mm": _precision_summary(surface),
         "cloud_points": 0 if not measured else int(surface.reliable.sum() if not keep_unreliable
                                                    else surface.reliable.size),
         "mesh_faces": mesh_faces,
@@ -397,6 +401,27 @@ def write_reconstruction(
     summary["files"] = sorted(list(paths) + ["summary.json"])
     paths["summary.json"] = _atomic.write_json(out / "summary.json", summary)
     return paths
+
+
+def _precision_plane(surface: Surface) -> np.ndarray:
+    """``precision_mm.tiff``'s plane: the 1σ random error of every height, NaN unknown."""
+    if surface.precision_mm is None:
+        return np.full(surface.shape, np.nan, np.float32)
+    return np.asarray(surface.precision_mm, np.float32)
+
+
+def _precision_summary(surface: Surface) -> dict | None:
+    """summary.json's ``precision_mm``: over the reliable pixels, the share whose random
+    error is known (their curves split), and its median and 95th percentile there."""
+    if surface.precision_mm is None or not surface.reliable.any():
+        return None
+    p = surface.precision_mm[surface.reliable]
+    known = p[np.isfinite(p)]
+    out = {"known_fraction": round(float(known.size / p.size), 4)}
+    if known.size:
+        out.update(median=round(float(np.median(known)), 5),
+                   p95=round(float(np.percentile(known, 95)), 5))
+    return out
 
 
 #: Outputs made from :attr:`Surface.dense`.

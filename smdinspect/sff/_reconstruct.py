@@ -15,8 +15,9 @@ from ..errors import InputError
 from ..stack import FocalStack
 from ._align import Alignment, estimate_alignment
 from ._config import FitMethod, FocusConfig
-from ._confidence import (blur_px_per_frame, borrowed_mask, confidence_cues, confidence_map,
-                          defocus_halo_mask, depth_edge_mask, step_levels, unsupported_mask)
+from ._confidence import (PRECISION_BOX_WINDOWS, blur_px_per_frame, borrowed_mask,
+                          confidence_cues, confidence_map, defocus_halo_mask, depth_edge_mask,
+                          precision_steps, step_levels, unsupported_mask)
 from ._depth import PeakTracker, centroid_correction, fit_peaks, select_curve_power
 from ._focus import (FocusOperator, band_powers, focus_measure, focus_measure_moments,
                      noise_focus, noise_focus_spread, prefilter, prefilter_sigma)
@@ -253,10 +254,9 @@ def reconstruct(
                                                  round(sigma, 3))
                          / noise_focus_spread(operator.value, config.window_px, config.threshold))
     curve: dict = {}
-    fit, confidence, halo, beyond = _level(tracker, z_mm, config, window_px=config.window_px,
-                                           halo_radius_px=config.window_px + 2,
-                                           noise_gain=noise_gain, own_px=own_px,
-                                           curve_out=curve)
+    fit, confidence, halo, beyond, precision = _level(
+        tracker, z_mm, config, window_px=config.window_px, halo_radius_px=config.window_px + 2,
+        noise_gain=noise_gain, own_px=own_px, curve_out=curve)
     meta: dict = {"curve_power": curve} if curve else {}
     field = np.ones(tracker.shape, bool)
     if alignment is not None:
@@ -272,9 +272,10 @@ def reconstruct(
     # coarse levels fill, finest first, what the finer ones left unreliable
     filled: list[np.ndarray] = []
     for level in coarse:
-        before_h, before_c = height, confidence
-        height, confidence, use = level.merge(height, confidence, halo, field, z_mm, config,
-                                              noise_gain=noise_gain, energy=energy)
+        before_h, before_c, before_p = height, confidence, precision
+        height, confidence, use, precision = level.merge(
+            height, confidence, halo, field, z_mm, config, noise_gain=noise_gain,
+            energy=energy, precision=precision)
         if filled and use.any() and config.edge_jump_steps > 0:
             # a second coarse level's window spans whole parts: where its fills meet a
             # height step, the fill is the suspect, not the finer level's pixels
@@ -283,6 +284,8 @@ def reconstruct(
                               radius_px=level.window_px // 2) & use
             height = np.where(near, before_h, height)
             confidence = np.where(near, before_c, confidence)
+            if precision is not None:
+                precision = np.where(near, before_p, precision)
             use &= ~near
         filled.append(use)
     del energy
@@ -359,6 +362,7 @@ def reconstruct(
         z_mm=z_mm,
         field=field,
         beyond=np.where(field & ~reliable, beyond, 0).astype(np.int8),
+        precision_mm=None if precision is None else precision * np.float32(abs(stack.step_mm)),
         meta=meta,
     )
 
@@ -380,8 +384,9 @@ def _prefetch(read: Callable[[int], np.ndarray], n: int, pool: ThreadPoolExecuto
 
 def _level(tracker: PeakTracker, z_mm: np.ndarray, config: FocusConfig, *, window_px: int,
            halo_radius_px: int, noise_gain: float = 1.0, own_px: int = 0,
-           curve_out: dict | None = None):
-    """Fit one level's peaks and judge them: (fit, confidence, halo mask, beyond).
+           curve_out: dict | None = None, grid_factor: int = 1):
+    """Fit one level's peaks and judge them: (fit, confidence, halo mask, beyond,
+    precision in steps or None; see :func:`precision_steps`).
 
     ``beyond`` (int8) is −1 / +1 where the curve is sharpest on the first / last frame
     and passes the noise and second-mode tests (clearly textured, falling away from the
@@ -410,7 +415,14 @@ def _level(tracker: PeakTracker, z_mm: np.ndarray, config: FocusConfig, *, windo
             np.copyto(fit.height_mm, height, where=fit.interior & interior)
             del height, interior
     tracker.release_curves()  # the fit holds what is needed from here on
-    cues = confidence_cues(fit, window_px=window_px, noise_spread_gain=noise_gain)
+    # the random error from the even/odd split, averaged over 3 × 3 windows (of this
+    # level's grid): a cue of its own, and the precision reported with the heights
+    precision = None
+    if fit.split_steps is not None:
+        box = max(3, int(round(PRECISION_BOX_WINDOWS * window_px / grid_factor)) | 1)
+        precision = precision_steps(fit.split_steps, box_px=box)
+    cues = confidence_cues(fit, window_px=window_px, noise_spread_gain=noise_gain,
+                           precision=precision if config.precision_check else None)
     confidence = confidence_map(fit, window_px=window_px, cues=cues)
     cues = {key: cues[key] for key in ("noise", "second_mode")}  # the others are spent
     first, last = fit.best_idx == 0, fit.best_idx == len(z_mm) - 1
@@ -434,7 +446,7 @@ def _level(tracker: PeakTracker, z_mm: np.ndarray, config: FocusConfig, *, windo
     confidence[halo] = 0.0
     clear = (cues["noise"] >= 0.5) & (cues["second_mode"] >= 0.5) & ~halo
     beyond = (np.where(first & clear, -1, 0) + np.where(last & clear, 1, 0)).astype(np.int8)
-    return fit, confidence, halo, beyond
+    return fit, confidence, halo, beyond, precision
 
 
 def _coarse_factors(config: FocusConfig, shape) -> list[int]:
@@ -444,6 +456,10 @@ def _coarse_factors(config: FocusConfig, shape) -> list[int]:
     if f <= 1:
         return []
     return [f ** k for k in range(1, config.coarse_levels + 1) if min(shape) >= 8 * f ** k]
+
+
+#: Largest bias (frame steps) a coarse fill may carry from the slope under its window.
+COARSE_BIAS_STEPS = 0.5
 
 
 class _CoarseLevel:
@@ -471,10 +487,12 @@ class _CoarseLevel:
 
     def merge(self, height: np.ndarray, confidence: np.ndarray, halo: np.ndarray,
               field: np.ndarray, z_mm: np.ndarray, config: FocusConfig, *,
-              noise_gain: float = 1.0, energy: np.ndarray | None = None):
+              noise_gain: float = 1.0, energy: np.ndarray | None = None,
+              precision: np.ndarray | None = None):
         """Fill the finer levels' unreliable pixels inside ``field`` (except the fine
         level's ``halo`` pixels) from reliable coarse ones; returns (height, confidence,
-        the mask of the pixels filled).
+        the mask of the pixels filled, ``precision`` (steps) with the filled pixels'
+        taken from this level).
 
         With the fine level's ``energy`` (:attr:`PeakTracker.texture_energy`) a pixel is
         filled only where the texture of its coarse footprint is not all to one side:
@@ -484,9 +502,9 @@ class _CoarseLevel:
         one) would take the textured side's height, which is not a measurement of it.
         """
         # the noise test scales with the footprint; the halo radius is the footprint's
-        fit, conf, _, _ = _level(self.tracker, z_mm, config, window_px=self.window_px,
-                              halo_radius_px=-(-(self.window_px + 2) // self.factor),
-                              noise_gain=noise_gain)
+        fit, conf, _, _, prec = _level(self.tracker, z_mm, config, window_px=self.window_px,
+                                       halo_radius_px=-(-(self.window_px + 2) // self.factor),
+                                       noise_gain=noise_gain, grid_factor=self.factor)
         inside = cv2.resize(field.astype(np.float32), self.small[::-1],
                             interpolation=cv2.INTER_AREA) > 0.999
         ok = (conf >= config.min_confidence) & inside
@@ -507,9 +525,31 @@ class _CoarseLevel:
             # whose texture is all to one side reads that side's height
             dx, dy = _energy_offset_px(energy, self.window_px)
             use &= np.hypot(dx, dy) <= self.window_px / 4.0
+        # A coarse window reads the energy-weighted mean height of its footprint; with
+        # the energy centroid up to a quarter footprint off the pixel, a surface sloping
+        # by |∇h| steps per px can be read |∇h|·window/4 off. Fill only where that bound
+        # is at most COARSE_BIAS_STEPS (the slope from the reliable coarse heights; a
+        # pixel whose coarse neighbours are not all reliable has no slope: not filled).
+        step = float(np.median(np.abs(np.diff(z_mm)))) if len(z_mm) > 1 else 1.0
+        # slope of the reliable coarse heights by normalised convolution (a pixel with
+        # too few reliable coarse neighbours has no slope and is not filled)
+        w_ok = ok.astype(np.float32)
+        den = cv2.GaussianBlur(w_ok, (0, 0), 1.0)
+        with np.errstate(invalid="ignore", divide="ignore"):
+            hs = cv2.GaussianBlur(np.where(ok, h_small, 0).astype(np.float32), (0, 0), 1.0) / den
+        hs = np.nan_to_num(hs, nan=0.0, posinf=0.0, neginf=0.0) / np.float32(step * self.factor)
+        gx = cv2.Sobel(hs, cv2.CV_32F, 1, 0, ksize=3, scale=0.125)
+        gy = cv2.Sobel(hs, cv2.CV_32F, 0, 1, ksize=3, scale=0.125)
+        slope = np.where(cv2.erode((den >= 0.3).astype(np.uint8), np.ones((3, 3), np.uint8)) > 0,
+                         np.hypot(gx, gy), np.inf).astype(np.float32)
+        slope = cv2.resize(slope, size, interpolation=cv2.INTER_NEAREST)
+        use &= slope * np.float32(self.window_px / 4.0) <= COARSE_BIAS_STEPS
         height = np.where(use, h_up, height).astype(np.float32)
         confidence = np.where(use, c_up, confidence).astype(np.float32)
-        return height, confidence, use
+        if precision is not None and prec is not None:
+            p_up = cv2.resize(prec, size, interpolation=cv2.INTER_NEAREST)
+            precision = np.where(use, p_up, precision).astype(np.float32)
+        return height, confidence, use, precision
 
 
 def _energy_offset_px(energy: np.ndarray, window_px: int) -> tuple[np.ndarray, np.ndarray]:

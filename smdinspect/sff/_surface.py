@@ -63,6 +63,10 @@ class Surface:
         −1 / +1 where the focus curve is clearly textured and sharpest on the first /
         last frame: the surface lies at or beyond that end of the sweep (unreliable as a
         height, a bound for the dense surface); 0 elsewhere. None when unknown.
+    precision_mm : (H, W) float32, optional
+        1σ random error of each height from the frames' noise (the even/odd split of its
+        focus curve, :func:`smdinspect.sff.precision_steps`); NaN where the curve is too
+        narrow to split (steps coarse against the depth of field). None when unknown.
     meta : dict
         Settings and timings, written to ``summary.json``.
     """
@@ -78,6 +82,7 @@ class Surface:
     z_mm: np.ndarray
     field: np.ndarray | None = None
     beyond: np.ndarray | None = None
+    precision_mm: np.ndarray | None = None
     meta: dict[str, Any] = _field(default_factory=dict)
 
     def __post_init__(self) -> None:

@@ -351,8 +351,10 @@ def run_cell(cell: StudyCell, config: TextureStudyConfig) -> dict:
     rows = []
     for fit in config.fits:
         for op in config.operators:
+            # the operators as they are, on the raw frames (no noise pre-filter)
             surface = reconstruct(stack, FocusConfig(operator=op, fit=fit, workers=1,
-                                                     window_px=config.window_px))
+                                                     window_px=config.window_px,
+                                                     prefilter_px=0.0))
             row = {"operator": op, "family": FocusOperator(op).family, "fit": fit}
             row.update(measure(surface, truth, stack.step_mm))
             row["ms_per_frame"] = 1000.0 * surface.meta["seconds"]["total"] / len(stack)

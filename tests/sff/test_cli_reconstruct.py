@@ -32,7 +32,8 @@ def test_outputs(cone_stack, tmp_path, capsys):
     assert main(["-q", "reconstruct", str(root), "--out", str(out)]) == 0
     assert "coverage" in capsys.readouterr().out
     names = {p.name for p in out.iterdir()}
-    assert names == {"height_mm.tiff", "confidence.tiff", "sigma_mm.tiff", "aif.png", "height.png", "view3d.png",
+    assert names == {"height_mm.tiff", "confidence.tiff", "sigma_mm.tiff", "precision_mm.tiff",
+                     "aif.png", "height.png", "view3d.png",
                      "cloud.ply", "mesh.ply", "mesh.stl", "summary.json", "height_filled_mm.tiff",
                      "sigma_filled_mm.tiff", "filled.png", "field.png"}
     dense = tifffile.imread(out / "height_filled_mm.tiff")
@@ -57,6 +58,13 @@ def test_outputs(cone_stack, tmp_path, capsys):
     assert len(mesh.faces) > 1000
     summary = json.loads((out / "summary.json").read_text())
     assert summary["coverage"] == pytest.approx(good.mean(), abs=1e-3)
+    # the random error of each height: NaN where unknown, else a fraction of a step
+    precision = tifffile.imread(out / "precision_mm.tiff")
+    assert precision.dtype == np.float32 and precision.shape == (128, 128)
+    known = precision[good & np.isfinite(precision)]
+    assert summary["precision_mm"]["known_fraction"] == pytest.approx(known.size / good.sum(), abs=1e-3)
+    if known.size:
+        assert 0 <= known.min() and np.median(known) < 0.5 * 0.05
     assert summary["frames"] == 17 and summary["config"]["operator"] == "sml"
     assert not [p for p in out.iterdir() if p.name.startswith(".")]
 
