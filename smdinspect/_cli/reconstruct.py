@@ -97,6 +97,8 @@ def register(sub: argparse._SubParsersAction) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
+    import numpy as np
+
     from .. import _atomic
     from ..calibrate import apply_calibration_file
     from ..cli import progress_callback
@@ -130,6 +132,16 @@ def run(args: argparse.Namespace) -> int:
     print(f"reconstructed {len(stack)} frames, {surface.shape[1]}x{surface.shape[0]} px: "
           f"coverage {100 * surface.coverage:.1f}%, heights {h.min():.3f} .. {h.max():.3f} mm, "
           f"{surface.meta['mpixel_per_s']:.0f} Mpixel/s")
+    if surface.precision_mm is not None:
+        p = surface.precision_mm[surface.reliable]
+        known = p[np.isfinite(p)]
+        share = known.size / p.size
+        if share >= 0.05:
+            print(f"random error (1σ, from the frames' noise) median {1000 * np.median(known):.1f} "
+                  f"µm, known for {100 * share:.0f}% of the reliable pixels")
+        else:
+            print(f"random error known for {100 * share:.1f}% of the reliable pixels only: their "
+                  "focus curves are too narrow to split (a step coarse against the depth of field)")
     hint = " (open view3d.png first)" if outputs is None or "view3d.png" in outputs else ""
     print(f"outputs in {args.out}/{hint}")
     return 0

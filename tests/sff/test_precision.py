@@ -112,3 +112,19 @@ def test_coarse_fills_stop_where_the_slope_under_the_window_could_bias_them(tmp_
         assert np.mean(err > 1) < 0.01, (name, np.mean(err > 1))
     assert fills["gentle"] > 0.08, fills  # measured 0.16
     assert fills["steep"] < 0.03, fills  # measured 0.014
+
+
+def test_reconstruct_command_reports_the_random_error(tmp_path, capsys):
+    import re
+
+    from smdinspect.cli import main
+
+    _weak_plane(tmp_path, noise_seed=10_106, name="cli")
+    assert main(["-q", "reconstruct", str(tmp_path / "cli"), "--out", str(tmp_path / "out"),
+                 "--outputs", "precision_mm.tiff"]) == 0
+    out = capsys.readouterr().out
+    m = re.search(r"random error \(1σ, from the frames' noise\) median ([0-9.]+) µm, known for "
+                  r"([0-9]+)% of the reliable pixels", out)
+    assert m, out
+    assert 0 < float(m.group(1)) < 0.2 * STEP * 1000 and int(m.group(2)) > 80
+    assert (tmp_path / "out" / "precision_mm.tiff").is_file()
