@@ -575,6 +575,22 @@ def _weighted_parabola(u: list[np.ndarray], q: list[np.ndarray], wt: list[np.nda
     return c.astype(np.float32), b.astype(np.float32), a.astype(np.float32)
 
 
+def masked_gradient(height: np.ndarray, ok: np.ndarray, *, sigma_px: float,
+                    min_weight: float) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Gradient (per px) of the ``ok`` heights: normalised Gaussian convolution of σ
+    ``sigma_px``, then central differences. Returns ``(gx, gy, dense)`` float32 and bool,
+    ``dense`` where every pixel of the 3 × 3 stencil has at least ``min_weight`` of its
+    smoothing weight on ``ok`` pixels (elsewhere the gradient means nothing)."""
+    w = ok.astype(np.float32)
+    h = np.where(ok, height, 0).astype(np.float32)
+    den = cv2.GaussianBlur(w, (0, 0), sigma_px)
+    smooth = cv2.GaussianBlur(h, (0, 0), sigma_px) / np.maximum(den, np.float32(1e-6))
+    gx = cv2.Sobel(smooth, cv2.CV_32F, 1, 0, ksize=3, scale=0.125)
+    gy = cv2.Sobel(smooth, cv2.CV_32F, 0, 1, ksize=3, scale=0.125)
+    dense = cv2.erode((den >= min_weight).astype(np.uint8), np.ones((3, 3), np.uint8)).view(bool)
+    return gx, gy, dense
+
+
 def centroid_correction(height_mm: np.ndarray, ok: np.ndarray, offset_px, *, window_px: int,
                         max_mm: float, width_steps: np.ndarray | None = None) -> np.ndarray:
     """Heights moved from under the window's focus-energy centroid to under its centre.
@@ -597,15 +613,8 @@ def centroid_correction(height_mm: np.ndarray, ok: np.ndarray, offset_px, *, win
     Returns a new float32 array.
     """
     dx, dy = offset_px
-    w = ok.astype(np.float32)
-    h = np.where(ok, height_mm, 0).astype(np.float32)
-    sigma = max(window_px / 4.0, 1.0)
-    den = cv2.GaussianBlur(w, (0, 0), sigma)
-    smooth = cv2.GaussianBlur(h, (0, 0), sigma) / np.maximum(den, np.float32(1e-6))
-    gx = cv2.Sobel(smooth, cv2.CV_32F, 1, 0, ksize=3, scale=0.125)
-    gy = cv2.Sobel(smooth, cv2.CV_32F, 0, 1, ksize=3, scale=0.125)
-    # the gradient needs reliable neighbours on every side of the 3x3 stencil
-    dense = cv2.erode((den >= 0.5).astype(np.uint8), np.ones((3, 3), np.uint8)).view(bool)
+    gx, gy, dense = masked_gradient(height_mm, ok, sigma_px=max(window_px / 4.0, 1.0),
+                                    min_weight=0.5)
     corr = gx * dx + gy * dy
     np.clip(corr, -max_mm, max_mm, out=corr)
     move = ok & dense

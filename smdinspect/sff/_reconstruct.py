@@ -18,7 +18,8 @@ from ._config import FitMethod, FocusConfig
 from ._confidence import (PRECISION_BOX_WINDOWS, blur_px_per_frame, borrowed_mask,
                           confidence_cues, confidence_map, defocus_halo_mask, depth_edge_mask,
                           precision_steps, step_levels, unsupported_mask)
-from ._depth import PeakTracker, centroid_correction, fit_peaks, select_curve_power
+from ._depth import (PeakTracker, centroid_correction, fit_peaks, masked_gradient,
+                     select_curve_power)
 from ._focus import (FocusOperator, band_powers, focus_measure, focus_measure_moments,
                      noise_focus, noise_focus_spread, prefilter, prefilter_sigma)
 from ._surface import Surface
@@ -528,20 +529,12 @@ class _CoarseLevel:
         # A coarse window reads the energy-weighted mean height of its footprint; with
         # the energy centroid up to a quarter footprint off the pixel, a surface sloping
         # by |∇h| steps per px can be read |∇h|·window/4 off. Fill only where that bound
-        # is at most COARSE_BIAS_STEPS (the slope from the reliable coarse heights; a
-        # pixel whose coarse neighbours are not all reliable has no slope: not filled).
+        # is at most COARSE_BIAS_STEPS (the slope from the reliable coarse heights; where
+        # too few coarse neighbours are reliable there is no slope: not filled).
         step = float(np.median(np.abs(np.diff(z_mm)))) if len(z_mm) > 1 else 1.0
-        # slope of the reliable coarse heights by normalised convolution (a pixel with
-        # too few reliable coarse neighbours has no slope and is not filled)
-        w_ok = ok.astype(np.float32)
-        den = cv2.GaussianBlur(w_ok, (0, 0), 1.0)
-        with np.errstate(invalid="ignore", divide="ignore"):
-            hs = cv2.GaussianBlur(np.where(ok, h_small, 0).astype(np.float32), (0, 0), 1.0) / den
-        hs = np.nan_to_num(hs, nan=0.0, posinf=0.0, neginf=0.0) / np.float32(step * self.factor)
-        gx = cv2.Sobel(hs, cv2.CV_32F, 1, 0, ksize=3, scale=0.125)
-        gy = cv2.Sobel(hs, cv2.CV_32F, 0, 1, ksize=3, scale=0.125)
-        slope = np.where(cv2.erode((den >= 0.3).astype(np.uint8), np.ones((3, 3), np.uint8)) > 0,
-                         np.hypot(gx, gy), np.inf).astype(np.float32)
+        gx, gy, dense = masked_gradient(h_small / np.float32(step * self.factor), ok,
+                                        sigma_px=1.0, min_weight=0.3)
+        slope = np.where(dense, np.hypot(gx, gy), np.inf).astype(np.float32)
         slope = cv2.resize(slope, size, interpolation=cv2.INTER_NEAREST)
         use &= slope * np.float32(self.window_px / 4.0) <= COARSE_BIAS_STEPS
         height = np.where(use, h_up, height).astype(np.float32)
