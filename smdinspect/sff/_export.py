@@ -69,8 +69,9 @@ def surface_point_cloud(surface: Surface, *, keep_unreliable: bool = False):
 
 def write_point_cloud(surface: Surface, path: str | Path, *, keep_unreliable: bool = False) -> Path:
     """Write ``cloud.ply``: binary little-endian PLY with float x, y, z (mm), uchar
-    red/green/blue and float confidence per vertex (read by Open3D, trimesh, MeshLab,
-    CloudCompare). Written with plyfile: importing Open3D only to write would cost more
+    red/green/blue, float confidence and float precision (the height's 1σ random error
+    in mm, NaN where unknown: :attr:`Surface.precision_mm`) per vertex (read by Open3D,
+    trimesh, MeshLab, CloudCompare). Written with plyfile: importing Open3D only to write would cost more
     than the write. The points are those of :meth:`Surface.points`, built here straight
     into the file's float32/uint8 record (no float64 or full-image float copies)."""
     plyfile = _require("plyfile")
@@ -79,7 +80,8 @@ def write_point_cloud(surface: Surface, path: str | Path, *, keep_unreliable: bo
     index = np.arange(h * w) if mask is None else np.flatnonzero(mask)
     rows, cols = np.divmod(index, w)
     vertex = np.empty(len(index), dtype=[("x", "<f4"), ("y", "<f4"), ("z", "<f4"), ("red", "u1"),
-                                         ("green", "u1"), ("blue", "u1"), ("confidence", "<f4")])
+                                         ("green", "u1"), ("blue", "u1"), ("confidence", "<f4"),
+                                         ("precision", "<f4")])
     p = 1.0 if surface.pixel_size_mm is None else float(surface.pixel_size_mm)
     vertex["x"] = cols * p
     vertex["y"] = (h - 1 - rows) * p
@@ -90,6 +92,8 @@ def write_point_cloud(surface: Surface, path: str | Path, *, keep_unreliable: bo
         vertex[channel] = rgb[:, i]
     del rgb
     vertex["confidence"] = surface.confidence.ravel()[index]
+    vertex["precision"] = (np.nan if surface.precision_mm is None
+                           else surface.precision_mm.ravel()[index])
     del index
     ply = plyfile.PlyData([plyfile.PlyElement.describe(vertex, "vertex")], byte_order="<")
     with _atomic.atomic_path(path) as tmp:

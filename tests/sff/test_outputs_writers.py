@@ -103,6 +103,7 @@ def test_cloud_ply_points_and_colours(tmp_path):
     assert np.array_equal(v["z"], height[rows, cols])
     assert np.array_equal(np.column_stack([v["red"], v["green"], v["blue"]]), aif[rows, cols])
     assert np.allclose(v["confidence"], 0.9)
+    assert np.isnan(v["precision"]).all()  # a surface without a precision: unknown
 
 
 # ---------------------------------------------------------------------------- height.png

@@ -128,3 +128,14 @@ def test_reconstruct_command_reports_the_random_error(tmp_path, capsys):
     assert m, out
     assert 0 < float(m.group(1)) < 0.2 * STEP * 1000 and int(m.group(2)) > 80
     assert (tmp_path / "out" / "precision_mm.tiff").is_file()
+    # and per point in the cloud, as Open3D reads it
+    import open3d as o3d
+    import tifffile
+
+    assert main(["-q", "reconstruct", str(tmp_path / "cli"), "--out", str(tmp_path / "out2"),
+                 "--outputs", "cloud.ply,precision_mm.tiff,confidence.tiff"]) == 0
+    cloud = o3d.t.io.read_point_cloud(str(tmp_path / "out2" / "cloud.ply"))
+    per_point = cloud.point.precision.numpy().ravel()
+    conf = tifffile.imread(tmp_path / "out2" / "confidence.tiff")
+    plane = tifffile.imread(tmp_path / "out2" / "precision_mm.tiff")
+    np.testing.assert_array_equal(np.sort(per_point), np.sort(plane[conf >= 0.5]))
