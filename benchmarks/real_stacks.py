@@ -15,7 +15,6 @@ from __future__ import annotations
 import argparse
 import json
 import os
-import re
 import statistics
 import subprocess
 import sys
@@ -27,7 +26,7 @@ import cv2
 import numpy as np
 
 from smdinspect.sff import FocusConfig, reconstruct, render_height_png
-from smdinspect.stack import FocalStack, Frame
+from smdinspect.stack import FocalStack
 
 REPO = Path(__file__).resolve().parents[1]
 CLI = REPO / ".venv" / "bin" / "smdinspect"
@@ -38,6 +37,8 @@ STACKS = {
     "metal-bore": ("image*.jpg", -0.1),  # rim sharp first: focus moves down
     "flat-target-zknown": ("XP005_Z-*.jpg", None),
 }
+#: the z in flat-target-zknown's file names (as the README's --z-from-name)
+Z_FROM_NAME = r"Z(-?[0-9.]+)"
 #: physical height range (mm) stated by a stack's README; none of the three states one,
 #: so the out-of-range check uses the swept range only.
 SCENE_RANGE_MM: dict[str, tuple[float, float]] = {}
@@ -49,8 +50,7 @@ def open_real_stack(folder: Path, pattern: str, step_mm: float | None) -> tuple[
     if step_mm is not None:
         return FocalStack.from_images(paths, step_mm=step_mm), paths, step_mm
     # XP005_Z-020.jpg is machine z = -20 mm; the focused plane is z + const, so z works.
-    frames = [Frame(p, -float(re.search(r"_Z-(\d+)", p.name).group(1))) for p in paths]
-    return FocalStack(tuple(sorted(frames, key=lambda f: f.z_mm))), paths, -1.0
+    return FocalStack.from_named_images(paths, pattern=Z_FROM_NAME), paths, -1.0
 
 
 def local_median(height: np.ndarray, mask: np.ndarray, block_px: int) -> np.ndarray:

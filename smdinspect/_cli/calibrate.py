@@ -107,18 +107,16 @@ def run_flat(args: argparse.Namespace) -> int:
     from ..calibrate import apply_calibration, calibrate_flat, write_calibration
     from ..cli import progress_callback
     from ..sff import reconstruct
-    from ..stack import open_stack
+    from ..stack import _replace_pixel, open_stack
     from .reconstruct import focus_config_from
 
     out = _default_out(args)
-    pixel = args.pixel_size_mm
-    stack = open_stack(args.stack, step_mm=args.step_mm, pixel_size_mm=pixel,
+    stack = open_stack(args.stack, step_mm=args.step_mm, pixel_size_mm=args.pixel_size_mm,
                        z_from_name=args.z_from_name)
     if stack.pixel_size_mm is None:
         pixel = _rig_pixel_size(args.rig)
-        if pixel is not None:
-            stack = open_stack(args.stack, step_mm=args.step_mm, pixel_size_mm=pixel,
-                               z_from_name=args.z_from_name)
+        if pixel is not None:  # the rig's, for a stack that records none
+            stack = _replace_pixel(stack, pixel)
     surface = reconstruct(stack, focus_config_from(args), progress=progress_callback(args, "focus"))
     cal = calibrate_flat(surface, degree=args.degree)
     print(cal.summary())

@@ -393,6 +393,8 @@ def _fit_block(best_idx, window, alternative, best, floor, z_mm, *, k: int,
         for j in list(range(k - 1, -1, -1)) + list(range(k + 1, 2 * k + 1)):
             inner = support[j + 1] if j < k else support[j - 1]
             support[j] = inner & ((y[j] > SUPPORT_FRACTION * y0) | (abs(j - k) == 1))
+        u = [u_at(j) for j in range(2 * k + 1)]
+        q = None  # the linearised samples, for the weighted fit and the even/odd split
         if method == FitMethod.GAUSS3:
             for j in range(2 * k + 1):
                 if abs(j - k) > 1:
@@ -405,8 +407,8 @@ def _fit_block(best_idx, window, alternative, best, floor, z_mm, *, k: int,
         else:
             # weights ∝ 1 / var(q) for a constant noise on y: y² (Gaussian), y^(2+2/p)
             expo = 2.0 if gauss else 2.0 + 2.0 / power
-            c, b, a = _weighted_parabola([u_at(j) for j in range(2 * k + 1)],
-                                         [to_q(v) for v in y],
+            q = [to_q(v) for v in y]
+            c, b, a = _weighted_parabola(u, q,
                                          [np.where(m, v ** expo, 0) for m, v in zip(support, y)])
         shift = -b / (2 * c)  # steps
         q_min = a - b * b / (4 * c)
@@ -428,8 +430,7 @@ def _fit_block(best_idx, window, alternative, best, floor, z_mm, *, k: int,
             return height, ~bad
         split = np.full(y0.shape, np.nan, np.float32)
         if method in (FitMethod.POWER, FitMethod.LSQ):
-            split = _split_difference([u_at(j) for j in range(2 * k + 1)],
-                                      [to_q(v) for v in y], y, support, k=k)
+            split = _split_difference(u, q, y, support, k=k)
             split[bad] = np.nan
         sigma = np.where(inverted | on_edge, np.nan, np.sqrt(half2) * abs(step)).astype(np.float32)
         amp = np.where(bad, y0, np.exp(np.minimum(log_amp, 80.0))).astype(np.float32)
