@@ -51,9 +51,12 @@ class PeakTracker:
     n_frames : int
     half_width : int
         k; the curve is kept over ±k frames around the peak.
+    sum_focus : bool
+        Also sum the focus over the frames (:attr:`texture_energy`, :meth:`centroid_px`).
     """
 
-    def __init__(self, shape: tuple[int, int], n_frames: int, *, half_width: int) -> None:
+    def __init__(self, shape: tuple[int, int], n_frames: int, *, half_width: int,
+                 sum_focus: bool = False) -> None:
         self.shape = shape
         self.n_frames = n_frames
         self.k = k = half_width
@@ -75,20 +78,17 @@ class PeakTracker:
         self._frame_no = np.empty(shape, np.int16)
         self._scratch = np.empty(shape, np.float32)
         self._finished = False
-        #: Σ Mx, Σ My and Σ F over the frames, when update() was given moments
-        self.moments: tuple[np.ndarray, np.ndarray, np.ndarray] | None = None
+        #: Σ F over the frames (with ``sum_focus``)
+        self.focus_sum = np.zeros(shape, np.float32) if sum_focus else None
         #: the small window's focus: (max, min over the frames, value at the best frame),
         #: when update() was given ``own``
         self.own: tuple[np.ndarray, np.ndarray, np.ndarray] | None = None
 
-    def update(self, n: int, focus: np.ndarray, moments=None, own=None) -> np.ndarray:
+    def update(self, n: int, focus: np.ndarray, own=None) -> np.ndarray:
         """Take frame ``n``'s focus measure; return the (H, W) bool mask of new bests.
 
-        ``moments`` (Mx, My, window_px), Mx and My of
-        :func:`~smdinspect.sff.focus_measure_moments`, if given, are summed with the focus
-        over the frames (:attr:`centroid_px`). ``own``, the same frame's focus over a
-        smaller window, is tracked for :meth:`own_share`. The returned mask is
-        reused by the next call: copy it to keep it.
+        ``own``, the same frame's focus over a smaller window, is tracked for
+        :meth:`own_share`. The returned mask is reused by the next call: copy it to keep it.
         """
         k, size = self.k, 2 * self.k + 1
         better = np.greater(focus, self.best, out=self._better)
@@ -98,12 +98,8 @@ class PeakTracker:
         np.minimum(self.floor, focus, out=self.floor)
         self._frame_no.fill(n)
         cv2.copyTo(self._frame_no, mask, self.best_idx)
-        if moments is not None and moments[0] is not None:
-            if self.moments is None:
-                self.window_px = moments[2]
-                self.moments = tuple(np.zeros(self.shape, np.float32) for _ in range(3))
-            for src, dst in zip((moments[0], moments[1], focus), self.moments):
-                np.add(dst, src, out=dst)
+        if self.focus_sum is not None:
+            np.add(self.focus_sum, focus, out=self.focus_sum)
         if own is not None:
             if self.own is None:
                 self.own = (np.full(self.shape, -np.inf, np.float32),
@@ -159,7 +155,7 @@ class PeakTracker:
 
     def release_curves(self) -> None:
         """Let go of the per-pixel curves (window, best, before/after) once
-        :func:`fit_peaks` has run; :attr:`centroid_px` and :attr:`shape` stay."""
+        :func:`fit_peaks` has run; :attr:`focus_sum` and :attr:`shape` stay."""
         self.finish()
         self.window = self.best = self.before = self.after = None
 
@@ -182,27 +178,26 @@ class PeakTracker:
     @property
     def texture_energy(self) -> np.ndarray | None:
         """(H, W) float32: each window's focus summed over the frames above its floor
-        (the texture the window holds, whatever its defocus), or None without moments."""
-        if self.moments is None:
+        (the texture the window holds, whatever its defocus), or None without
+        ``sum_focus``."""
+        if self.focus_sum is None:
             return None
-        return np.maximum(self.moments[2] - np.float32(self.n_frames) * self.floor, 0)
+        return np.maximum(self.focus_sum - np.float32(self.n_frames) * self.floor, 0)
 
-    @property
-    def centroid_px(self) -> tuple[np.ndarray, np.ndarray] | None:
+    def centroid_px(self, mx: np.ndarray, my: np.ndarray, *,
+                    window_px: int) -> tuple[np.ndarray, np.ndarray]:
         """(dx, dy) float32: offset (px) of the centroid of each window's focus energy from
-        its centre, or None when update() had no moments.
+        its centre, from Σ Mx and Σ My over the frames
+        (:func:`~smdinspect.sff.focus_measure_moments`; needs ``sum_focus``).
 
         The energy is summed over all frames above the curve's floor, so it weighs each
         pixel of the window by its texture, not by how defocused it is in one frame (at
         a coarse step the best frame favours the pixels nearest that frame's height).
         The noise's centroid is the window's centre; offsets are clipped to the window.
         """
-        if self.moments is None:
-            return None
-        mx, my, total = self.moments
-        den = total - np.float32(self.n_frames) * self.floor
+        den = self.focus_sum - np.float32(self.n_frames) * self.floor
         np.maximum(den, np.float32(1e-30), out=den)
-        half = np.float32(self.window_px // 2)
+        half = np.float32(window_px // 2)
         return (np.clip(mx / den, -half, half), np.clip(my / den, -half, half))
 
     @property
@@ -599,7 +594,7 @@ def centroid_correction(height_mm: np.ndarray, ok: np.ndarray, offset_px, *, win
     A window's focus curve is the sum of its pixels' curves, each weighted by its texture
     energy; on a locally planar surface h(q) = h(p) + ∇h·(q − p) its peak lies at the
     energy-weighted mean height, h(p) + ∇h·c with c the energy centroid's offset from
-    the window centre (:attr:`PeakTracker.centroid_px`). So h(p) = ĥ − ∇h·c, with ∇h
+    the window centre (:meth:`PeakTracker.centroid_px`). So h(p) = ĥ − ∇h·c, with ∇h
     estimated from the ``ok`` heights themselves (normalised Gaussian convolution at a
     quarter window, then central differences). Only ``ok`` pixels with enough ``ok``
     neighbours move, by at most ``max_mm`` (a step edge is not a plane).

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import collections
 import logging
+import threading
 import time
 from concurrent.futures import Future, ThreadPoolExecutor
 from typing import Callable
@@ -146,7 +147,17 @@ def reconstruct(
     moments_wanted = ((config.centroid_correction or own_px) and operator.uses_threshold
                       and config.fit != FitMethod.ARGMAX)
 
+    # Σ Mx and Σ My of the frames (for the centroid correction), summed in the workers
+    moment_sums = _FrameOrderSums(n) if moments_wanted else None
+
     def load(i: int):
+        try:
+            return _load(i)
+        finally:  # a failed frame must not hold the next ones' sums back
+            if moment_sums is not None:
+                moment_sums.add(i, None)
+
+    def _load(i: int):
         image = cache.pop(i, None)
         if image is None:
             image = stack.read_frame(i)
@@ -170,6 +181,7 @@ def reconstruct(
             focus = focus_measure(gray, operator=config.operator, window_px=config.window_px,
                                   threshold=config.threshold)
             mx = my = None
+        del gray
         if alignment is not None:
             if image.shape[:2] != alignment.shape:
                 raise _mismatch(stack.frames[i].path, image.shape, first, alignment.shape)
@@ -207,9 +219,12 @@ def reconstruct(
             if own is not None:
                 own = alignment.warp(own, i)
             image = alignment.warp(image, i)
+        if moment_sums is not None:
+            moment_sums.add(i, None if mx is None else (mx, my))
+            del mx, my
         small = [_CoarseLevel.reduce(focus, f)  # in the worker
                  for f in _coarse_factors(config, focus.shape)]
-        return image, focus, small, (mx, my, config.window_px), own
+        return image, focus, small, own
 
     tracker: PeakTracker | None = None
     coarse: list[_CoarseLevel] = []
@@ -223,30 +238,34 @@ def reconstruct(
             while next_i < n and len(pending) < depth:
                 pending.append(pool.submit(load, next_i))
                 next_i += 1
-            image, focus, small, moments, own = pending.popleft().result()
+            image, focus, small, own = pending.popleft().result()
             if ref_shape is None:
                 ref_shape = image.shape
                 if min(image.shape[:2]) < config.window_px:
                     raise InputError(
                         f"window_px {config.window_px} is larger than the frames "
                         f"({image.shape[1]}x{image.shape[0]} px)")
-                tracker = PeakTracker(image.shape[:2], n, half_width=config.fit_half_width)
+                tracker = PeakTracker(image.shape[:2], n, half_width=config.fit_half_width,
+                                      sum_focus=moments_wanted)
                 coarse = [_CoarseLevel(image.shape[:2], n, config, f)
                           for f in _coarse_factors(config, image.shape[:2])]
                 aif = np.zeros_like(image)
             elif image.shape != ref_shape:
                 raise _mismatch(stack.frames[i].path, image.shape, first, ref_shape)
-            better = tracker.update(i, focus, moments, own=own)
+            better = tracker.update(i, focus, own=own)
             for level, plane in zip(coarse, small):
                 level.tracker.update(i, plane)
             cv2.copyTo(image, better.view(np.uint8), aif)
             if progress is not None:
                 progress(i + 1, n)
-        del image, focus, small, moments, own, better  # the last frame's planes
+        del image, focus, small, own, better  # the last frame's planes
     t_stream = time.perf_counter() - t0
-    centroid = tracker.centroid_px if config.centroid_correction else None
+    centroid = None
+    if config.centroid_correction and moment_sums is not None and moment_sums.sums is not None:
+        centroid = tracker.centroid_px(*moment_sums.sums, window_px=config.window_px)
+    moment_sums = None
     energy = tracker.texture_energy if coarse else None
-    tracker.moments = None  # summed into the centroid and the energy
+    tracker.focus_sum = None  # summed into the centroid and the energy
 
     # a pre-filtered noise is correlated: the noise test must ask for a larger peak
     noise_gain = 1.0
@@ -366,6 +385,35 @@ def reconstruct(
         precision_mm=None if precision is None else precision * np.float32(abs(stack.step_mm)),
         meta=meta,
     )
+
+
+class _FrameOrderSums:
+    """Per-pixel sums over the frames of planes made in the worker threads, added by the
+    workers in frame order: the float32 sums are the same whichever thread finishes
+    first, and no frame's planes wait in the queue for the main thread.
+
+    Every frame index must pass through :meth:`add` (with None when its frame failed)
+    so that the next frame does not wait for it for ever.
+    """
+
+    def __init__(self, n: int) -> None:
+        self._done = [threading.Event() for _ in range(n)]
+        self.sums: list[np.ndarray] | None = None
+
+    def add(self, i: int, planes: tuple[np.ndarray, ...] | None) -> None:
+        if self._done[i].is_set():
+            return
+        try:
+            if i > 0:
+                self._done[i - 1].wait()
+            if planes is not None:
+                if self.sums is None:
+                    self.sums = [p.copy() for p in planes]
+                elif planes[0].shape == self.sums[0].shape:  # else the main thread raises
+                    for acc, p in zip(self.sums, planes):
+                        np.add(acc, p, out=acc)
+        finally:
+            self._done[i].set()
 
 
 def _prefetch(read: Callable[[int], np.ndarray], n: int, pool: ThreadPoolExecutor, *,
