@@ -18,6 +18,7 @@ from typing import Any, Callable, Collection
 import numpy as np
 
 from .. import _atomic
+from .._malloc import release_free_memory
 from ..errors import InputError
 from ._surface import Surface, _unit_rgb, pixel_to_xy_mm
 
@@ -302,6 +303,7 @@ def write_reconstruction(
         Name → path of every file written.
     """
     t0 = time.perf_counter()
+    release_free_memory()  # what the reconstruction freed, before the writers allocate
     wanted = set(RECONSTRUCTION_OUTPUTS if outputs is None else outputs) | {"summary.json"}
     unknown = sorted(wanted - set(RECONSTRUCTION_OUTPUTS))
     if unknown:

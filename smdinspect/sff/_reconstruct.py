@@ -12,6 +12,7 @@ from typing import Callable
 import cv2
 import numpy as np
 
+from .._malloc import release_free_memory
 from ..errors import InputError
 from ..stack import FocalStack
 from ._align import Alignment, estimate_alignment
@@ -260,6 +261,7 @@ def reconstruct(
                 progress(i + 1, n)
         del image, focus, small, own, better  # the last frame's planes
     t_stream = time.perf_counter() - t0
+    release_free_memory()  # the workers' freed frames, before the fit allocates afresh
     centroid = None
     if config.centroid_correction and moment_sums is not None and moment_sums.sums is not None:
         centroid = tracker.centroid_px(*moment_sums.sums, window_px=config.window_px)
