@@ -26,6 +26,7 @@ import cv2
 import numpy as np
 
 from smdinspect.sff import FocusConfig, reconstruct, render_height_png
+from smdinspect.sff._depth import masked_gradient
 from smdinspect.stack import FocalStack
 
 REPO = Path(__file__).resolve().parents[1]
@@ -143,10 +144,21 @@ def figures(name: str, full, even, field: np.ndarray) -> dict:
     out["even_median_steps"] = float(np.median(diff)) if diff.size else float("nan")
     out["even_agree_field"] = float((diff <= 0.25).sum() / max(field.sum(), 1))
 
-    t = np.interp(height[rel], z, np.arange(z.size)) % 1.0
+    frames = np.interp(height, z, np.arange(z.size)).astype(np.float32)
+    t = frames[rel] % 1.0
     hist = np.histogram(t, bins=10, range=(0.0, 1.0))[0] / max(t.size, 1)
     out["terrace_hist"] = [round(float(s), 4) for s in hist]
     out["terrace_dev"] = float(np.max(np.abs(hist - 0.1)) / 0.1)
+    # The same split by the local slope (frames per px, 8-px scale): a surface sloping
+    # through the frames must fill every fractional position alike; a flat part of the
+    # scene puts all its pixels at its own one, with or without terraces
+    gx, gy, dense = masked_gradient(frames, rel, sigma_px=8.0, min_weight=0.5)
+    slope = np.hypot(gx, gy)
+    for key, sel in (("flat", rel & dense & (slope < 0.005)), ("sloped", rel & dense & (slope >= 0.02))):
+        ts = frames[sel] % 1.0
+        hs = np.histogram(ts, bins=10, range=(0.0, 1.0))[0] / max(ts.size, 1)
+        out[f"terrace_dev_{key}"] = float(np.max(np.abs(hs - 0.1)) / 0.1) if ts.size else float("nan")
+        out[f"terrace_share_{key}"] = float(sel.sum() / n_rel)
     # where the coverage goes: peaks beyond the sweep (sharpest on an end frame, clearly
     # textured) cannot be measured by any focus measure of these frames
     if full.beyond is not None:
@@ -246,6 +258,9 @@ def report(name: str, r: dict) -> None:
     for label, value, goal, ok in rows:
         print(f"  {label:<36} {value:<24} goal {goal:<11} {verdict(ok)}")
     print("  terrace histogram (t = 0.0..1.0): " + " ".join(f"{s:.3f}" for s in r["terrace_hist"]))
+    print(f"  by local slope: flat (< 0.005 frames/px, {100 * r['terrace_share_flat']:.0f} % of "
+          f"reliable) {r['terrace_dev_flat']:.2f}, sloped (>= 0.02, "
+          f"{100 * r['terrace_share_sloped']:.1f} %) {r['terrace_dev_sloped']:.2f}")
     if "beyond_share" in r:
         print(f"  {100 * r['beyond_share']:.1f} % of the field is sharpest beyond an end of the "
               f"sweep; coverage of the rest {100 * r['coverage_within_sweep']:.1f} %")
