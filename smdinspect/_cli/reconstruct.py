@@ -41,9 +41,10 @@ def add_stack_arguments(p: argparse.ArgumentParser) -> None:
                    help="Gaussian σ (px) smoothing each frame before the focus measure, against "
                         "sensor noise; 'auto' picks it from the sweep's noise-only frequencies, "
                         "0 turns it off (default: auto for reconstruct, 0 for inspect and grr)")
-    p.add_argument("--coarse-levels", type=int, default=1, choices=(1, 2, 3), metavar="N",
+    p.add_argument("--coarse-levels", type=int, default=None, choices=(1, 2, 3), metavar="N",
                    help="coarse focus levels (4x, 16x, 64x blocks) filling what finer ones left "
-                        "unreliable; 2 helps smooth, weakly textured parts (default 1)")
+                        "unreliable, on smooth, weakly textured parts (default 2; inspect and "
+                        "grr use none)")
     p.add_argument("--workers", type=int, default=2, help="decode/focus threads (default 2)")
     p.add_argument("--keep-unreliable", action="store_true",
                    help="keep unreliable points in cloud.ply and the mesh")
@@ -73,9 +74,10 @@ def focus_config_from(args: argparse.Namespace, base=None):
         raise InputError("--operator auto is only available in smdinspect reconstruct")
     given = dict(operator=args.operator, window_px=args.window_px, fit=args.fit,
                  fit_half_width=args.fit_half_width, min_confidence=args.min_confidence,
-                 align=args.align, workers=args.workers,
-                 coarse_levels=getattr(args, "coarse_levels", 1))
-    if getattr(args, "prefilter", None) is not None:  # else the base's (or the default)
+                 align=args.align, workers=args.workers)
+    if getattr(args, "coarse_levels", None) is not None:  # else the base's (or the default)
+        given["coarse_levels"] = args.coarse_levels
+    if getattr(args, "prefilter", None) is not None:
         given["prefilter_px"] = prefilter_value(args.prefilter)
     return dataclasses.replace(base, **given) if base is not None else FocusConfig(**given)
 

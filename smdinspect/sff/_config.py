@@ -72,7 +72,9 @@ class FocusConfig:
     coarse_levels : int
         Coarse levels of factors ``coarse_factor``, ``coarse_factor``², …: each fills
         what the finer ones left unreliable (a level needs 8 blocks on the frame's
-        shorter side). Default 1.
+        shorter side). From the second level on, a pixel is filled only where the finer
+        map measured at least half of the level's footprint, consistently, and agrees
+        with the reading (``_footprint_agrees`` in ``_reconstruct.py``). Default 2.
     prefilter_px : float or "auto"
         σ (px) of a Gaussian applied to each grey frame before the focus operator, to keep
         a derivative operator off the frequencies where the sensor noise outweighs the
@@ -145,7 +147,7 @@ class FocusConfig:
     halo_ratio: float = 4.0
     support_steps: float = 1.5
     coarse_factor: int = 4
-    coarse_levels: int = 1
+    coarse_levels: int = 2
     prefilter_px: float | str = "auto"
     centroid_correction: bool = True
     own_window_px: int = 5

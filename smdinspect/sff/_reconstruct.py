@@ -511,6 +511,9 @@ def _coarse_factors(config: FocusConfig, shape) -> list[int]:
 
 #: Largest bias (frame steps) a coarse fill may carry from the slope under its window.
 COARSE_BIAS_STEPS = 0.5
+#: Share of a second (or further) coarse level's footprint the finer map must have
+#: measured before that level may fill the pixel (see ``_CoarseLevel.merge``).
+FOOTPRINT_MIN_SHARE = 0.5
 
 
 class _CoarseLevel:
@@ -587,12 +590,49 @@ class _CoarseLevel:
         slope = np.where(dense, np.hypot(gx, gy), np.inf).astype(np.float32)
         slope = cv2.resize(slope, size, interpolation=cv2.INTER_NEAREST)
         use &= slope * np.float32(self.window_px / 4.0) <= COARSE_BIAS_STEPS
+        if self.factor > config.coarse_factor:
+            use &= _footprint_agrees(height, confidence >= config.min_confidence, h_up,
+                                     step=step, window_px=self.window_px)
         height = np.where(use, h_up, height).astype(np.float32)
         confidence = np.where(use, c_up, confidence).astype(np.float32)
         if precision is not None and prec is not None:
             p_up = cv2.resize(prec, size, interpolation=cv2.INTER_NEAREST)
             precision = np.where(use, p_up, precision).astype(np.float32)
         return height, confidence, use, precision
+
+
+def _footprint_agrees(height: np.ndarray, reliable: np.ndarray, coarse: np.ndarray, *,
+                      step: float, window_px: int) -> np.ndarray:
+    """(H, W) bool: where a coarse level's reading ``coarse`` (mm) is borne out by the
+    finer map's ``reliable`` heights over its ``window_px`` footprint.
+
+    A second coarse level's footprint (~88 px) spans whole parts, and its own heights,
+    averaged over that footprint, show no curvature within it: under a sphere cap
+    narrower than the footprint they read flat, so a slope bound from them passes
+    everything while the cap's flanks are filled with the base's height (a randomised
+    case: 3 249 pixels off by 1.4–13.5 steps). The finer map (fine level and the
+    coarser levels before) resolves the footprint, so a pixel is filled only where at
+    least :data:`FOOTPRINT_MIN_SHARE` of the footprint is measured there, those heights
+    spread by at most :data:`COARSE_BIAS_STEPS` (σ; a plane sloping under the window by
+    the slope bound's limit spreads by about as much) and the reading lies within twice
+    that of their mean (a footprint reading another depth than the one measured in it).
+    """
+    k = (window_px, window_px)
+    ok = reliable.astype(np.float32)
+    base = float(np.median(height[reliable])) if reliable.any() else 0.0
+    h = np.where(reliable, (height - np.float32(base)) / np.float32(step), 0).astype(np.float32)
+    share = cv2.boxFilter(ok, -1, k, borderType=cv2.BORDER_REFLECT)
+    m1 = cv2.boxFilter(h, -1, k, borderType=cv2.BORDER_REFLECT)
+    np.multiply(h, h, out=h)
+    m2 = cv2.boxFilter(h, -1, k, borderType=cv2.BORDER_REFLECT)
+    del h
+    known = share >= FOOTPRINT_MIN_SHARE
+    with np.errstate(divide="ignore", invalid="ignore"):
+        mean = m1 / share
+        spread = np.sqrt(np.maximum(m2 / share - mean * mean, 0))
+        reading = (coarse - np.float32(base)) / np.float32(step)
+        return known & (spread <= COARSE_BIAS_STEPS) & (
+            np.abs(reading - mean) <= 2 * COARSE_BIAS_STEPS)
 
 
 def _energy_offset_px(energy: np.ndarray, window_px: int) -> tuple[np.ndarray, np.ndarray]:
