@@ -656,9 +656,11 @@ def _energy_offset_px(energy: np.ndarray, window_px: int) -> tuple[np.ndarray, n
 def _near_step(height, reliable, *, jump_mm: float, radius_px: int) -> np.ndarray:
     """Pixels within ``radius_px`` of a height step, either side (:func:`step_levels`)."""
     step = np.isfinite(step_levels(height, reliable, jump_mm=jump_mm, span_px=5))
-    disk = cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (2 * radius_px + 1, 2 * radius_px + 1))
-    return cv2.dilate(step.astype(np.uint8), disk, borderType=cv2.BORDER_CONSTANT,
-                      borderValue=0).view(bool)
+    if not step.any():
+        return step
+    # Euclidean distance to the nearest step pixel (a dilation by a disc, in O(1) a pixel)
+    dist = cv2.distanceTransform((~step).view(np.uint8), cv2.DIST_L2, cv2.DIST_MASK_PRECISE)
+    return dist <= radius_px
 
 
 def _mismatch(path, shape, first, ref_shape) -> InputError:
