@@ -152,11 +152,13 @@ def reconstruct(
     moment_sums = _FrameOrderSums(n) if moments_wanted else None
 
     def load(i: int):
+        moments = None  # stays None when the frame fails: the next frames must not wait
         try:
-            return _load(i)
-        finally:  # a failed frame must not hold the next ones' sums back
+            image, focus, small, own, moments = _load(i)
+            return image, focus, small, own
+        finally:
             if moment_sums is not None:
-                moment_sums.add(i, None)
+                moment_sums.add(i, moments)
 
     def _load(i: int):
         image = cache.pop(i, None)
@@ -220,12 +222,9 @@ def reconstruct(
             if own is not None:
                 own = alignment.warp(own, i)
             image = alignment.warp(image, i)
-        if moment_sums is not None:
-            moment_sums.add(i, None if mx is None else (mx, my))
-            del mx, my
         small = [_CoarseLevel.reduce(focus, f)  # in the worker
                  for f in _coarse_factors(config, focus.shape)]
-        return image, focus, small, own
+        return image, focus, small, own, (None if mx is None else (mx, my))
 
     tracker: PeakTracker | None = None
     coarse: list[_CoarseLevel] = []
@@ -394,8 +393,8 @@ class _FrameOrderSums:
     workers in frame order: the float32 sums are the same whichever thread finishes
     first, and no frame's planes wait in the queue for the main thread.
 
-    Every frame index must pass through :meth:`add` (with None when its frame failed)
-    so that the next frame does not wait for it for ever.
+    Every frame index must pass through :meth:`add` once (with None when its frame
+    failed) so that the next frame does not wait for it for ever.
     """
 
     def __init__(self, n: int) -> None:
@@ -403,8 +402,6 @@ class _FrameOrderSums:
         self.sums: list[np.ndarray] | None = None
 
     def add(self, i: int, planes: tuple[np.ndarray, ...] | None) -> None:
-        if self._done[i].is_set():
-            return
         try:
             if i > 0:
                 self._done[i - 1].wait()
