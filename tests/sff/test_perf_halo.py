@@ -115,3 +115,17 @@ def test_unsupported_mask_equals_reference(distance_px, tol_mm):
     got = unsupported_mask(height, reliable, distance_px=distance_px, tol_mm=tol_mm)
     want = _reference_unsupported_mask(height, reliable, distance_px=distance_px, tol_mm=tol_mm)
     assert np.array_equal(got, want)
+
+
+@pytest.mark.parametrize("radius_px", [3, 16, 23, 45, 60])
+def test_dilate_disc_equals_opencv_disc(radius_px):
+    """The disc dilation as a union of separable rectangles equals OpenCV's elliptic
+    kernel pixel for pixel, borders included (sparse finite levels in a −inf map)."""
+    from smdinspect.sff._confidence import dilate_disc
+
+    rng = np.random.default_rng(radius_px)
+    level = rng.random((211, 307)).astype(np.float32)
+    level[level < 0.995] = -np.inf
+    disk = cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (2 * radius_px + 1,) * 2)
+    want = cv2.dilate(level, disk, borderType=cv2.BORDER_REPLICATE)
+    assert np.array_equal(dilate_disc(level, radius_px), want)
