@@ -61,7 +61,12 @@ Gaps
     ``gap_margin_mm`` away from the pads and ``body_margin_mm`` away from the body, is
     cut into paths running from one pad to the other. A path is covered at height z
     when ``bridge_min_fraction`` of its reliable pixels stand higher; ``gap_mm`` is the
-    highest covered z over the paths.
+    highest covered z over the paths. Along a chip's sides the band between the body's
+    nominal edge and ``body_margin_mm`` is read too (a web that wets the body lies mostly
+    there), with the measured body left out; a path there counts only where it is level
+    (its median within ``bridge_height_mm`` of its covered z: a path straddling the
+    body's edge mixes body and board heights) and stands at least
+    :data:`LEVEL_PATH_BODY_GAP_MM` below the measured body top (the body's bled edge).
 Area, volume, mean
     Over the solder area (chips: the pad outside the grown body; gull-wing: the side
     region plus the solder standing above the nominal lead top on the foot); volume and
@@ -432,9 +437,11 @@ def measure_board(board, ctx: MeasureContext, config: InspectConfig):
                 joints[j.id] = _measure_chip(comp, j, win, config, level, u_level)
         # Where the body really stands (a shifted part covers its own gap band).
         skip = near[win.sl]
-        if cm.body_mask is not None:
-            skip = skip | _morph(cm.body_mask[win.sl], config.body_margin_mm / ctx.p, grow=True)
-        _measure_gaps(comp, win, config, joints, others=skip)
+        body = None if cm.body_mask is None else cm.body_mask[win.sl]
+        grown = skip if body is None else \
+            skip | _morph(body, config.body_margin_mm / ctx.p, grow=True)
+        _measure_gaps(comp, win, config, joints, others=grown, near_others=skip, body=body,
+                      body_top_mm=cm.body_height_mm)
     return joints, comps
 
 
@@ -752,14 +759,30 @@ def _measure_gullwing(comp, joint, win: _Win, config: InspectConfig, level: floa
 # --------------------------------------------------------------------------------------
 
 
-def _path_level(h: np.ndarray, valid: np.ndarray, config: InspectConfig):
-    """Best covered level over the paths (rows) of a (n_paths × n_along) grid."""
+#: The band next to a chip's body reads the body's own height where the body's edge
+#: bleeds into it (its rounded top edge stands up to some tens of µm below the body's
+#: median height): a level path there counts as a web only this far below the body top.
+LEVEL_PATH_BODY_GAP_MM = 0.1
+
+
+def _path_level(h: np.ndarray, valid: np.ndarray, config: InspectConfig, *,
+                level: bool = False, below_mm: float = NAN):
+    """Best covered level over the paths (rows) of a (n_paths × n_along) grid.
+
+    With ``level`` a path counts only where its heights are level along it: the median
+    stands within ``bridge_height_mm`` of the covered height (a web's top runs along
+    the body at one height; a path that straddles the body's edge mixes the body's
+    heights with the board's), and below ``below_mm`` (NaN: no bound)."""
     best_z, best_f = NAN, NAN
     for hk, ok in zip(h, valid):
         if ok.sum() < max(3, 0.5 * ok.size):
             continue
         vals = hk[ok]
         z = float(np.quantile(vals, 1.0 - config.bridge_min_fraction))
+        if level:
+            mid, top = np.quantile(vals, [0.5, config.bridge_min_fraction])
+            if mid - z > config.bridge_height_mm or not top < below_mm:
+                continue
         if not np.isfinite(best_z) or z > best_z:
             best_z, best_f = z, float(np.mean(vals > config.bridge_height_mm))
     return best_z, best_f
@@ -775,10 +798,14 @@ def _record(joints, a: str, b: str, z: float, f: float) -> None:
 
 
 def _measure_gaps(comp, win: _Win, config: InspectConfig, joints: dict[str, JointMeasurement],
-                  *, others: np.ndarray | None = None) -> None:
+                  *, others: np.ndarray | None = None, near_others: np.ndarray | None = None,
+                  body: np.ndarray | None = None, body_top_mm: float = NAN) -> None:
     """Solder across the gaps between neighbouring pads of one component (see module doc).
 
-    ``others``: window pixels of the other parts' footprints, never sampled."""
+    ``others``: window pixels of the other parts' footprints and of the measured body
+    grown by ``body_margin_mm``, never sampled. Chips: ``near_others`` (the footprints
+    alone), ``body`` (the measured body, window pixels) and ``body_top_mm`` (its
+    measured height) for the band next to the body (:func:`_level_paths`)."""
     p = win.ctx.p
     gm, mg = config.gap_margin_mm, config.body_margin_mm
     hl, hw = comp.body_length_mm / 2.0, comp.body_width_mm / 2.0
@@ -796,9 +823,19 @@ def _measure_gaps(comp, win: _Win, config: InspectConfig, joints: dict[str, Join
         if x_lim <= 2 * p:
             return
         xs = np.arange(-x_lim, x_lim + 1e-9, p)
+        # The band next to the body (nominal edge to body_margin_mm), where a web that
+        # wets the body's side stands: the measured body itself is left out, not grown.
+        hug = (np.abs(win.lx) <= hl) & (np.abs(win.ly) <= hw)
+        for extra in (near_others, body):
+            if extra is not None:
+                hug = hug | extra
         for side in (-1.0, 1.0):
             ys = side * (hw + mg + np.arange(0.0, 0.1 + 1e-9, p))
             z, f = _sample_paths(win, comp, xs, ys, body_grown, config)
+            _record(joints, a.id, b.id, z, f)
+            ys = side * (hw + np.arange(0.0, mg - 1e-9, p))
+            z, f = _sample_paths(win, comp, xs, ys, hug, config, level=True,
+                                 below_mm=body_top_mm - LEVEL_PATH_BODY_GAP_MM)
             _record(joints, a.id, b.id, z, f)
         return
     groups: dict[tuple[float, float], list] = {}
@@ -836,15 +873,17 @@ def _measure_gaps(comp, win: _Win, config: InspectConfig, joints: dict[str, Join
             _record(joints, a.id, b.id, z, f)
 
 
-def _sample_paths(win: _Win, comp, xs, ys, exclude, config):
+def _sample_paths(win: _Win, comp, xs, ys, exclude, config, **level):
     """Sample the grid of component-local points (paths along x, one per y)."""
     gx, gy = np.meshgrid(xs, ys)           # rows: paths (one y each), cols: along x
     pts = comp.to_board(np.column_stack([gx.ravel(), gy.ravel()])).reshape(gx.shape + (2,))
-    return _sample_board(win, pts, exclude, config)
+    return _sample_board(win, pts, exclude, config, **level)
 
 
-def _sample_board(win: _Win, pts: np.ndarray, exclude: np.ndarray, config: InspectConfig):
-    """Paths are the rows of the BOARD point grid ``pts`` (n_paths, n_along, 2)."""
+def _sample_board(win: _Win, pts: np.ndarray, exclude: np.ndarray, config: InspectConfig,
+                  **level):
+    """Paths are the rows of the BOARD point grid ``pts`` (n_paths, n_along, 2);
+    ``level`` as in :func:`_path_level`."""
     shp = pts.shape[:2]
     cr = win.ctx.board_to_px(pts.reshape(-1, 2)) - win.origin
     c = np.round(cr[:, 0]).astype(int)
@@ -854,7 +893,7 @@ def _sample_board(win: _Win, pts: np.ndarray, exclude: np.ndarray, config: Inspe
     c, r = np.clip(c, 0, W - 1), np.clip(r, 0, H - 1)
     valid = (inside & win.rel[r, c] & ~exclude[r, c]).reshape(shp)
     h = np.where(valid, win.h[r, c].reshape(shp), np.nan)
-    return _path_level(h, valid, config)
+    return _path_level(h, valid, config, **level)
 
 
 # --------------------------------------------------------------------------------------

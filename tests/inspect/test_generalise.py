@@ -210,6 +210,45 @@ def test_side_overhang_within_the_ipc_limit_is_not_a_shift():
 # -- every class on randomised boards ----------------------------------------------------------
 
 
+# -- bridges -------------------------------------------------------------------------------
+
+
+@pytest.mark.parametrize("width, height", [(0.10, 0.12), (0.146, 0.22), (0.26, 0.30)])
+def test_a_web_hugging_a_chip_body_is_a_bridge(width, height):
+    """A solder web along a chip's side that wets the body (its inner edge under it)
+    lies mostly inside the body margin the gap paths keep clear of: the band next to
+    the body is read too, where a level path below the body top is the web."""
+    defects = "R2.1:bridge,R1.2:bridge"
+    params = {"R2.1": {"width_mm": width, "height_mm": height},
+              "R1.2": {"width_mm": width, "height_mm": height}}
+    got, _, _ = _verdicts(defects, seed=9, params=params)
+    for jid in ("R2.1", "R2.2", "R1.1", "R1.2"):
+        assert got[jid].verdict is Verdict.BRIDGE, (jid, got[jid].reason)
+    clean, _, _ = _verdicts("", seed=9)
+    for jid in ("R2.1", "R2.2", "R1.1", "R1.2", "C1.1", "C1.2", "R3.1", "R3.2"):
+        assert clean[jid].verdict is not Verdict.BRIDGE, (jid, clean[jid].reason)
+
+
+def test_level_paths_take_a_web_not_the_body_edge():
+    """Next to the body a path counts only where it is level and below the body top: a
+    web's top (0.21 mm along it) is taken; a path straddling the body's edge (body
+    heights with board heights among them) and the body's own bled height are not."""
+    from smdinspect.inspect._measure import _path_level
+
+    cfg = InspectConfig()
+    rng = np.random.default_rng(0)
+    n = 60
+    web = 0.21 + rng.normal(0, 0.003, n)
+    straddle = np.where(rng.random(n) < 0.3, rng.uniform(0.0, 0.3, n), 0.41)
+    bled = 0.40 + rng.normal(0, 0.003, n)
+    ok = np.ones((1, n), bool)
+    for row, want in ((web, True), (straddle, False), (bled, False)):
+        z, _ = _path_level(row[None], ok, cfg, level=True, below_mm=0.45 - 0.1)
+        assert math.isfinite(z) is want, (z, want)
+        z_plain, _ = _path_level(row[None], ok, cfg)
+        assert z_plain > cfg.bridge_height_mm  # the plain level would call each a web
+
+
 def test_randomised_boards_no_false_call_and_defects_found():
     """A few randomised tuning boards on ideal heights: no good joint fails; every defect
     past its limit on a whole part is called a defect."""
