@@ -805,7 +805,7 @@ def _measure_gaps(comp, win: _Win, config: InspectConfig, joints: dict[str, Join
     ``others``: window pixels of the other parts' footprints and of the measured body
     grown by ``body_margin_mm``, never sampled. Chips: ``near_others`` (the footprints
     alone), ``body`` (the measured body, window pixels) and ``body_top_mm`` (its
-    measured height) for the band next to the body (:func:`_level_paths`)."""
+    measured height) for the band next to the body (see :func:`_path_level`)."""
     p = win.ctx.p
     gm, mg = config.gap_margin_mm, config.body_margin_mm
     hl, hw = comp.body_length_mm / 2.0, comp.body_width_mm / 2.0
