@@ -436,11 +436,8 @@ def measure_board(board, ctx: MeasureContext, config: InspectConfig):
             else:
                 joints[j.id] = _measure_chip(comp, j, win, config, level, u_level)
         # Where the body really stands (a shifted part covers its own gap band).
-        skip = near[win.sl]
         body = None if cm.body_mask is None else cm.body_mask[win.sl]
-        grown = skip if body is None else \
-            skip | _morph(body, config.body_margin_mm / ctx.p, grow=True)
-        _measure_gaps(comp, win, config, joints, others=grown, near_others=skip, body=body,
+        _measure_gaps(comp, win, config, joints, others=near[win.sl], body=body,
                       body_top_mm=cm.body_height_mm)
     return joints, comps
 
@@ -778,11 +775,14 @@ def _path_level(h: np.ndarray, valid: np.ndarray, config: InspectConfig, *,
         if ok.sum() < max(3, 0.5 * ok.size):
             continue
         vals = hk[ok]
-        z = float(np.quantile(vals, 1.0 - config.bridge_min_fraction))
         if level:
-            mid, top = np.quantile(vals, [0.5, config.bridge_min_fraction])
+            z, mid, top = np.quantile(vals, [1.0 - config.bridge_min_fraction, 0.5,
+                                             config.bridge_min_fraction])
             if mid - z > config.bridge_height_mm or not top < below_mm:
                 continue
+        else:
+            z = np.quantile(vals, 1.0 - config.bridge_min_fraction)
+        z = float(z)
         if not np.isfinite(best_z) or z > best_z:
             best_z, best_f = z, float(np.mean(vals > config.bridge_height_mm))
     return best_z, best_f
@@ -798,18 +798,23 @@ def _record(joints, a: str, b: str, z: float, f: float) -> None:
 
 
 def _measure_gaps(comp, win: _Win, config: InspectConfig, joints: dict[str, JointMeasurement],
-                  *, others: np.ndarray | None = None, near_others: np.ndarray | None = None,
-                  body: np.ndarray | None = None, body_top_mm: float = NAN) -> None:
+                  *, others: np.ndarray | None = None, body: np.ndarray | None = None,
+                  body_top_mm: float = NAN) -> None:
     """Solder across the gaps between neighbouring pads of one component (see module doc).
 
-    ``others``: window pixels of the other parts' footprints and of the measured body
-    grown by ``body_margin_mm``, never sampled. Chips: ``near_others`` (the footprints
-    alone), ``body`` (the measured body, window pixels) and ``body_top_mm`` (its
-    measured height) for the band next to the body (see :func:`_path_level`)."""
+    ``others``: window pixels of the other parts' footprints, never sampled. ``body``:
+    the window pixels of the measured body (where the body really stands: a shifted
+    part covers its own gap band), kept ``body_margin_mm`` clear of except in the band
+    next to a chip's body, read with ``body_top_mm`` (its measured height; see
+    :func:`_path_level`)."""
     p = win.ctx.p
     gm, mg = config.gap_margin_mm, config.body_margin_mm
     hl, hw = comp.body_length_mm / 2.0, comp.body_width_mm / 2.0
+    # never sampled: the other parts and the nominal and measured bodies grown by the
+    # body margin (the band next to a chip's body: the bodies themselves, below)
     body_grown = (np.abs(win.lx) <= hl + mg) & (np.abs(win.ly) <= hw + mg)
+    if body is not None:
+        body_grown = body_grown | _morph(body, mg / p, grow=True)
     if others is not None:
         body_grown = body_grown | others
     if comp.kind == "chip" and len(comp.joints) == 2:
@@ -823,16 +828,16 @@ def _measure_gaps(comp, win: _Win, config: InspectConfig, joints: dict[str, Join
         if x_lim <= 2 * p:
             return
         xs = np.arange(-x_lim, x_lim + 1e-9, p)
-        # The band next to the body (nominal edge to body_margin_mm), where a web that
-        # wets the body's side stands: the measured body itself is left out, not grown.
         hug = (np.abs(win.lx) <= hl) & (np.abs(win.ly) <= hw)
-        for extra in (near_others, body):
+        for extra in (body, others):
             if extra is not None:
                 hug = hug | extra
         for side in (-1.0, 1.0):
             ys = side * (hw + mg + np.arange(0.0, 0.1 + 1e-9, p))
             z, f = _sample_paths(win, comp, xs, ys, body_grown, config)
             _record(joints, a.id, b.id, z, f)
+            # the band next to the body (nominal edge to body_margin_mm), where a web
+            # that wets the body's side stands
             ys = side * (hw + np.arange(0.0, mg - 1e-9, p))
             z, f = _sample_paths(win, comp, xs, ys, hug, config, level=True,
                                  below_mm=body_top_mm - LEVEL_PATH_BODY_GAP_MM)
