@@ -5,8 +5,9 @@ every component body and fiducial gives one point pair (nominal BOARD position,
 measured WORLD position):
 
 * **Body centroid**: the connected blob of reliable pixels standing above the body's
-  presence threshold near the nominal body, holes filled; used only when its area is
-  close to the body's nominal area (a shifted, tombstoned or missing part either fails
+  presence threshold near the nominal body, holes filled; used only when its area (of
+  its convex hull: notches along a termination do not count) is close to the body's
+  nominal area (a shifted, tombstoned or missing part either fails
   this or is rejected later as an outlier). The centroid of a symmetric body is immune
   to symmetric edge blur.
 * **Fiducial**: in the all-in-focus image, the fiducial's edge is found along rays from
@@ -144,7 +145,8 @@ def body_blob(comp, height, reliable, T, p, *, search_mm: float,
 
 def _body_pair(comp, height, reliable, T, p, *,
                search_mm: float = BODY_SEARCH_MM) -> FeaturePair | None:
-    """The blob of about the body's area (0.8–1.2×) nearest to the predicted centre."""
+    """The blob of about the body's area (0.8–1.2×, convex hull) nearest to the predicted
+    centre."""
     import cv2
     from scipy.ndimage import binary_fill_holes
 
@@ -168,9 +170,10 @@ def _body_pair(comp, height, reliable, T, p, *,
         if blob.sum() * p * p < 0.5 * nominal:
             continue
         blob = binary_fill_holes(blob)
-        if not 0.8 <= blob.sum() * p * p / nominal <= 1.2:
-            continue
         rows, cols = np.nonzero(blob)
+        area = _hull_area_px(np.column_stack([cols, rows]).astype(np.float32)) * p * p
+        if not 0.8 <= area / nominal <= 1.2:
+            continue
         # A blob cut by the search window's edge is not the whole body.
         if rows.min() == 0 or cols.min() == 0 or rows.max() == blob.shape[0] - 1 or \
                 cols.max() == blob.shape[1] - 1:
@@ -184,6 +187,18 @@ def _body_pair(comp, height, reliable, T, p, *,
     x, y = pixel_to_world(np.array([best + [c0, r0]]), shape=shape, pixel_size_mm=p)[0]
     return FeaturePair("body", comp.ref, (comp.x_mm, comp.y_mm), (float(x), float(y)),
                        weight=BODY_WEIGHT)
+
+
+def _hull_area_px(pts: np.ndarray) -> float:
+    """Area (pixels) of a blob's convex hull, ``pts`` its (x, y) pixel centres (float32).
+
+    A body is convex: its hull is not cut by the unreliable notches shape from focus
+    leaves along a bright termination, where the blob's own pixel count is. The hull of
+    the pixel centres is grown by half a pixel along its perimeter."""
+    import cv2
+
+    hull = cv2.convexHull(pts)
+    return float(cv2.contourArea(hull) + 0.5 * cv2.arcLength(hull, True) + 1.0)
 
 
 def _fiducial_pair(fid, aif_gray, T, p) -> FeaturePair | None:
@@ -369,7 +384,7 @@ def refine_with_features(pairs: list[FeaturePair], T0: np.ndarray, *, min_pairs:
 # Global pose from bodies: match measured body blobs to the reference layout.
 # --------------------------------------------------------------------------------------
 
-#: A measured blob matches a body when its area (holes filled) is 0.8-1.2 times the
+#: A measured blob matches a body when its convex hull's area is 0.8-1.2 times the
 #: nominal body area (as in the local body search) and its minimum-area rectangle's
 #: sides lie within :data:`BLOB_SIDE_TOL_MM` (or 25 %) of the body's length and width
 #: (through shape from focus a body's blob grows by up to ~0.2 mm across: edge blur).
@@ -383,7 +398,7 @@ class _Blob:
     xy: tuple[float, float]      # centroid, WORLD mm
     sides: tuple[float, float]   # min-area rectangle, long side first (mm)
     angle_deg: float             # direction of the long side, mod 180
-    area_mm2: float              # holes filled
+    area_mm2: float              # convex hull (notches and holes filled)
 
 
 def _measured_blobs(height, reliable, level_mm: float, p: float) -> list[_Blob]:
@@ -416,7 +431,7 @@ def _measured_blobs(height, reliable, level_mm: float, p: float) -> list[_Blob]:
                                 pixel_size_mm=p)[0]
         # Image y points down: a direction at image angle `ang` is at -ang in WORLD.
         out.append(_Blob((float(cx), float(cy)), (float(a), float(b)), float((-ang) % 180.0),
-                         float(blob.sum() * p * p)))
+                         _hull_area_px(pts) * p * p))
     return out
 
 

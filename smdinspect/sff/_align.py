@@ -141,6 +141,61 @@ class Alignment:
             "transforms": [a.tolist() for a in self.transforms],
         }
 
+    def parallax_maps(self, z_mm: np.ndarray, height_mm: np.ndarray, *,
+                      iterations: int = 2) -> tuple[tuple[np.ndarray, np.ndarray] | None, dict]:
+        """Resampling maps that put every pixel where its in-focus point lies.
+
+        On a rig that moves the camera, a point is sharp when it lies at the working
+        distance, so in the frame where it is in focus it is imaged at the focused
+        plane's magnification, the one ``pixel_size_mm`` describes, whatever its height.
+        The alignment registers each frame by its content, mostly the board, onto the
+        most magnified frame's grid, and so magnifies the frame focused at ``z`` by
+        ``1 / scale(z)``: a raised point lands ``(x - c)(1 / scale(h) - 1)`` further from
+        the optical centre ``c`` than its metric position (perspective parallax, ~1 % of
+        the distance to the centre per mm of height at a 100 mm working distance). The
+        point at metric position ``x`` was measured at ``c + (x - c) / scale(h)``, with
+        ``ln scale`` a least-squares line in ``z`` through the frames' scales and ``h``
+        the height found there (``iterations`` fixed-point steps); ``c`` is the image
+        centre (the principal point of a lens looking straight down).
+
+        A magnification that grows with z is a rig that focuses with the lens (or z
+        runs the wrong way): its parallax depends on the distance to the lens, which
+        the frames do not give, so nothing is corrected.
+
+        Returns
+        -------
+        maps : (map_x, map_y) float32 (H, W) for ``cv2.remap``, or None
+        info : dict
+            ``corrected``, ``scale_per_mm`` (relative magnification change per mm of z)
+            and, when corrected, ``max_shift_px`` over the field.
+        """
+        z = np.asarray(z_mm, np.float64)
+        n = len(self.transforms)
+        if z.size != n or n < 2 or np.ptp(z) <= 0:
+            return None, {"corrected": False, "reason": "fewer than two frames in z"}
+        log_s = np.log([self.scale(i) for i in range(n)])
+        g, a = np.polyfit(z, log_s, 1)
+        info: dict = {"corrected": False, "scale_per_mm": round(float(np.expm1(g)), 6)}
+        if not g < 0:
+            info["reason"] = "magnification grows with z (a rig that focuses with the lens)"
+            return None, info
+        h, w = self.shape
+        cx, cy = (w - 1) / 2.0, (h - 1) / 2.0
+        gx = np.arange(w, dtype=np.float32)[None, :] - np.float32(cx)
+        gy = np.arange(h, dtype=np.float32)[:, None] - np.float32(cy)
+        height = np.nan_to_num(np.asarray(height_mm, np.float32), nan=float(np.median(z)))
+        lo, hi = float(z.min()), float(z.max())
+        inv = np.exp(-(a + g * np.clip(height, lo, hi))).astype(np.float32)
+        for _ in range(max(1, iterations)):
+            map_x, map_y = cx + gx * inv, cy + gy * inv
+            h_src = cv2.remap(height, map_x, map_y, cv2.INTER_NEAREST,
+                              borderMode=cv2.BORDER_REPLICATE)
+            inv = np.exp(-(a + g * np.clip(h_src, lo, hi))).astype(np.float32)
+        map_x, map_y = cx + gx * inv, cy + gy * inv
+        shift = np.hypot(map_x - gx - cx, map_y - gy - cy)[self.field]
+        info.update(corrected=True, max_shift_px=round(float(shift.max()) if shift.size else 0.0, 2))
+        return (map_x, map_y), info
+
     def magnification_trend(self) -> float:
         """Relative magnification change from the first frame to the last (frames in
         ascending z), from a least-squares line through the frames' scales: > 0 when

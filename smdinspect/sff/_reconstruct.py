@@ -354,6 +354,25 @@ def reconstruct(
                 height, reliable, distance_px=level.window_px, tol_mm=tol))
         confidence[lonely] = 0.0
         reliable &= ~lonely
+    f_peak, sigma_mm, reliability_db = fit.f_peak, fit.sigma_mm, fit.reliability_db
+    if alignment is not None:
+        maps, info = alignment.parallax_maps(z_mm, height)
+        meta["alignment"]["parallax"] = info
+        if maps is not None:
+            def _to_metric(a):  # nearest: bool/int8 maps and heights keep their values
+                byte = a.dtype.itemsize == 1
+                out = cv2.remap(np.ascontiguousarray(a).view(np.uint8) if byte else a, *maps,
+                                cv2.INTER_NEAREST, borderMode=cv2.BORDER_CONSTANT, borderValue=0)
+                return out.view(a.dtype) if byte else out
+
+            field = _to_metric(field)
+            height, confidence, f_peak, sigma_mm, reliability_db, aif, beyond = (
+                _to_metric(a) for a in (height, confidence, f_peak, sigma_mm,
+                                        reliability_db, aif, beyond))
+            if precision is not None:
+                precision = _to_metric(precision)
+            reliable = _to_metric(reliable) & field
+            confidence[~field] = 0.0
     t_total = time.perf_counter() - t0
     h, w = tracker.shape
     meta.update({
@@ -375,9 +394,9 @@ def reconstruct(
         height_mm=height,
         confidence=confidence,
         reliable=reliable,
-        f_peak=fit.f_peak,
-        sigma_mm=fit.sigma_mm,
-        reliability_db=fit.reliability_db,
+        f_peak=f_peak,
+        sigma_mm=sigma_mm,
+        reliability_db=reliability_db,
         aif=aif,
         pixel_size_mm=stack.pixel_size_mm,
         z_mm=z_mm,

@@ -159,8 +159,32 @@ def test_a_body_biased_by_an_excess_fillet_is_left_out_of_the_fit():
     # Tuning case dense 50 (true heights): R3's convex excess fillet reaches the body's
     # presence threshold and pulls its centroid 60 µm; within 3x the median residual of
     # the fit it pulled, it was kept and turned the board 0.26°. Judged by its deletion
-    # residual (off the others' fit) it is an outlier.
+    # residual (off the others' fit) it is an outlier. (Its blob's convex hull, fillet
+    # included, is also too large for the body: it is not paired at all.)
     case, reg, T_true = _registered_truth_case(DENSE, 50)
     assert reg.converged, reg.reason
-    assert "body:R3" in reg.meta["features"]["rejected"]
+    assert "body:R3" not in reg.meta["features"]["used"]
     assert _corner_error_mm(reg.transform, T_true, case["board"]) < 0.01
+
+
+def test_a_body_with_unreliable_notches_along_its_ends_is_still_a_body_blob():
+    # Shape from focus leaves the bright terminations' edges unreliable: the blob of a
+    # 1.6 x 0.8 mm body loses a fifth of its pixels in notches, but its convex hull
+    # keeps the body's area (the old pixel count fell below 0.8 of the nominal).
+    from smdinspect.inspect._features import _blob_matches, _measured_blobs
+
+    board = load_board(DEMO)
+    r1 = next(c for c in board.components if c.ref == "R1")
+    p = 0.02
+    h = np.zeros((120, 160), np.float32)
+    h[40:80, 40:120] = 0.45                       # 80 x 40 px = 1.6 x 0.8 mm
+    rel = np.ones(h.shape, bool)
+    for c0 in (44, 106):                          # notches across the body by each end
+        rel[40:70, c0:c0 + 10] = False
+    rel[64:80, 66:94] = False                     # and one in the other long side
+    blobs = _measured_blobs(h, rel, 0.3, p)
+    assert len(blobs) == 1
+    (b,) = blobs
+    assert rel[40:80, 40:120].mean() < 0.75       # the pixels alone fail the area test
+    assert b.area_mm2 == pytest.approx(1.6 * 0.8, rel=0.05)
+    assert _blob_matches(r1, b)

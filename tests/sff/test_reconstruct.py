@@ -11,8 +11,8 @@ from smdinspect.errors import InputError
 from smdinspect.optics import Optics
 from smdinspect.sff import FitMethod, FocusConfig, reconstruct
 from smdinspect.stack import FocalStack, StackWriter
-from smdinspect.synth import (SensorConfig, cone_scene, half_textured_scene, render_frame,
-                              render_stack, staircase_scene)
+from smdinspect.synth import (TEST_SEEDS, SensorConfig, cone_scene, half_textured_scene,
+                              render_frame, render_stack, staircase_scene)
 
 STEP = 0.05
 PIXEL = 0.015
@@ -156,3 +156,33 @@ def test_import_sff_does_not_load_open3d():
     code = "import sys, smdinspect.sff; print('open3d' in sys.modules, 'trimesh' in sys.modules)"
     out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True)
     assert out.stdout.split() == ["False", "False"]
+
+
+def test_ordinary_lens_parallax_puts_raised_points_at_their_metric_position(tmp_path):
+    """A moving camera with an ordinary lens images a raised point larger than the board
+    in the aligned grid; the surface puts it back where it lies (within half a pixel)."""
+    from smdinspect.synth import Scene
+
+    n, p = 480, 0.02
+    optics = Optics.for_pixel_size(p, telecentric=False)
+    height = np.zeros((n, n), np.float32)
+    height[40:100, 380:440] = 1.6           # a block far from the centre (up and right)
+    rng = np.random.default_rng(TEST_SEEDS[0] + 5)
+    albedo = cv2.GaussianBlur(rng.random((n, n)).astype(np.float32), (0, 0), 1.2)
+    albedo = (0.3 + 0.4 * (albedo - albedo.min()) / np.ptp(albedo)).astype(np.float32)
+    scene = Scene(height, albedo, p, name="block")
+    z = np.arange(-0.3, 1.95, 0.075)
+    stack = render_stack(scene, z, optics=optics, seed=TEST_SEEDS[0] + 6, out=tmp_path / "b",
+                         previews=False)
+    s = reconstruct(stack, FocusConfig(align=True))
+    info = s.meta["alignment"]["parallax"]
+    # d ln m / dz = -1 / d_f on the board
+    assert info["corrected"] and info["scale_per_mm"] == pytest.approx(
+        -1 / optics.working_distance_mm, rel=0.3)
+    top = s.reliable & (s.height_mm > 1.2)
+    assert top.sum() > 0.5 * 60 * 60
+    rows, cols = np.nonzero(top)
+    # truth centre (69.5, 409.5); the aligned grid alone puts it ~2 px further out
+    assert abs(rows.mean() - 69.5) < 0.6 and abs(cols.mean() - 409.5) < 0.6, (rows.mean(), cols.mean())
+    board = s.reliable & (np.abs(s.height_mm) < 0.1)
+    assert board[300:, :150].mean() > 0.8
