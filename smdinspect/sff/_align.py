@@ -141,22 +141,25 @@ class Alignment:
             "transforms": [a.tolist() for a in self.transforms],
         }
 
-    def parallax_maps(self, z_mm: np.ndarray, height_mm: np.ndarray, *,
-                      iterations: int = 2) -> tuple[tuple[np.ndarray, np.ndarray] | None, dict]:
-        """Resampling maps that put every pixel where its in-focus point lies.
+    def parallax_sources(self, z_mm: np.ndarray, height_mm: np.ndarray, reliable: np.ndarray
+                         ) -> tuple[np.ndarray | None, dict]:
+        """Where every output pixel's in-focus point was measured (perspective parallax).
 
         On a rig that moves the camera, a point is sharp when it lies at the working
         distance, so in the frame where it is in focus it is imaged at the focused
         plane's magnification, the one ``pixel_size_mm`` describes, whatever its height.
-        The alignment registers each frame by its content, mostly the board, onto the
-        most magnified frame's grid, and so magnifies the frame focused at ``z`` by
-        ``1 / scale(z)``: a raised point lands ``(x - c)(1 / scale(h) - 1)`` further from
-        the optical centre ``c`` than its metric position (perspective parallax, ~1 % of
-        the distance to the centre per mm of height at a 100 mm working distance). The
-        point at metric position ``x`` was measured at ``c + (x - c) / scale(h)``, with
-        ``ln scale`` a least-squares line in ``z`` through the frames' scales and ``h``
-        the height found there (``iterations`` fixed-point steps); ``c`` is the image
-        centre (the principal point of a lens looking straight down).
+        The alignment registers each frame by its content onto the most magnified
+        frame's grid, and so magnifies the frame focused at ``z`` by ``1 / scale(z)``:
+        a raised point lands further from the optical centre ``c`` than a low one at
+        the same place (~1 % of the distance to the centre per mm of height at a 100 mm
+        working distance). Each reliable pixel at height ``h`` is moved to
+        ``c + (x - c) · scale(h) / scale(h0)``, with ``ln scale`` a least-squares line in
+        ``z`` through the frames' scales, ``h0`` the median reliable height (the board,
+        on a board: it stays where it is) and ``c`` the image centre (the principal
+        point of a lens looking straight down); unreliable pixels stay. Where two land
+        on one pixel the higher wins (it hides the other from the lens); a pixel nothing
+        lands on was hidden behind a raised part's edge and is left unreliable. An
+        output pixel is ``scale(h0)`` times the focused plane's pixel (``pixel_scale``).
 
         A magnification that grows with z is a rig that focuses with the lens (or z
         runs the wrong way): its parallax depends on the distance to the lens, which
@@ -164,37 +167,44 @@ class Alignment:
 
         Returns
         -------
-        maps : (map_x, map_y) float32 (H, W) for ``cv2.remap``, or None
+        sources : (H, W) int64 or None
+            Flat index of the pixel each output pixel takes; -1 where nothing landed.
         info : dict
             ``corrected``, ``scale_per_mm`` (relative magnification change per mm of z)
-            and, when corrected, ``max_shift_px`` over the field.
+            and, when corrected, ``reference_height_mm`` (h0), ``pixel_scale``,
+            ``max_shift_px`` and ``hidden_fraction`` (pixels nothing landed on).
         """
         z = np.asarray(z_mm, np.float64)
         n = len(self.transforms)
         if z.size != n or n < 2 or np.ptp(z) <= 0:
             return None, {"corrected": False, "reason": "fewer than two frames in z"}
-        log_s = np.log([self.scale(i) for i in range(n)])
-        g, a = np.polyfit(z, log_s, 1)
+        g, a = np.polyfit(z, np.log([self.scale(i) for i in range(n)]), 1)
         info: dict = {"corrected": False, "scale_per_mm": round(float(np.expm1(g)), 6)}
         if not g < 0:
             info["reason"] = "magnification grows with z (a rig that focuses with the lens)"
             return None, info
+        sel = np.asarray(reliable, bool) & self.field & np.isfinite(height_mm)
+        h0 = float(np.median(height_mm[sel])) if sel.any() else float(np.median(z))
         h, w = self.shape
+        rows, cols = np.nonzero(sel)
+        f = np.exp(g * (np.clip(height_mm[sel], z.min(), z.max()) - h0))
         cx, cy = (w - 1) / 2.0, (h - 1) / 2.0
-        gx = np.arange(w, dtype=np.float32)[None, :] - np.float32(cx)
-        gy = np.arange(h, dtype=np.float32)[:, None] - np.float32(cy)
-        height = np.nan_to_num(np.asarray(height_mm, np.float32), nan=float(np.median(z)))
-        lo, hi = float(z.min()), float(z.max())
-        inv = np.exp(-(a + g * np.clip(height, lo, hi))).astype(np.float32)
-        for _ in range(max(1, iterations)):
-            map_x, map_y = cx + gx * inv, cy + gy * inv
-            h_src = cv2.remap(height, map_x, map_y, cv2.INTER_NEAREST,
-                              borderMode=cv2.BORDER_REPLICATE)
-            inv = np.exp(-(a + g * np.clip(h_src, lo, hi))).astype(np.float32)
-        map_x, map_y = cx + gx * inv, cy + gy * inv
-        shift = np.hypot(map_x - gx - cx, map_y - gy - cy)[self.field]
-        info.update(corrected=True, max_shift_px=round(float(shift.max()) if shift.size else 0.0, 2))
-        return (map_x, map_y), info
+        tx = np.rint(cx + (cols - cx) * f).astype(np.int64)
+        ty = np.rint(cy + (rows - cy) * f).astype(np.int64)
+        inside = (tx >= 0) & (tx < w) & (ty >= 0) & (ty < h)
+        sources = np.arange(h * w, dtype=np.int64).reshape(h, w)
+        sources[sel] = -1
+        key, src = ty[inside] * w + tx[inside], (rows * w + cols)[inside]
+        order = np.lexsort((height_mm[sel][inside], key))   # by target, then height
+        key, src = key[order], src[order]
+        last = np.append(key[1:] != key[:-1], True)          # the highest per target
+        sources.reshape(-1)[key[last]] = src[last]
+        shift = np.hypot(tx - cols, ty - rows)
+        info.update(corrected=True, reference_height_mm=round(h0, 5),
+                    pixel_scale=round(float(np.exp(g * h0 + a)), 6),
+                    max_shift_px=round(float(shift.max()) if shift.size else 0.0, 2),
+                    hidden_fraction=round(float(np.mean(sources < 0)), 6))
+        return sources, info
 
     def magnification_trend(self) -> float:
         """Relative magnification change from the first frame to the last (frames in

@@ -355,24 +355,22 @@ def reconstruct(
         confidence[lonely] = 0.0
         reliable &= ~lonely
     f_peak, sigma_mm, reliability_db = fit.f_peak, fit.sigma_mm, fit.reliability_db
+    pixel_size = stack.pixel_size_mm
     if alignment is not None:
-        maps, info = alignment.parallax_maps(z_mm, height)
+        sources, info = alignment.parallax_sources(z_mm, height, reliable)
         meta["alignment"]["parallax"] = info
-        if maps is not None:
-            def _to_metric(a):  # nearest: bool/int8 maps and heights keep their values
-                byte = a.dtype.itemsize == 1
-                out = cv2.remap(np.ascontiguousarray(a).view(np.uint8) if byte else a, *maps,
-                                cv2.INTER_NEAREST, borderMode=cv2.BORDER_CONSTANT, borderValue=0)
-                return out.view(a.dtype) if byte else out
-
-            field = _to_metric(field)
+        if sources is not None:
+            if pixel_size is not None:
+                pixel_size *= info["pixel_scale"]
+            hidden = sources < 0
+            take = np.where(hidden, np.arange(sources.size).reshape(sources.shape), sources)
             height, confidence, f_peak, sigma_mm, reliability_db, aif, beyond = (
-                _to_metric(a) for a in (height, confidence, f_peak, sigma_mm,
-                                        reliability_db, aif, beyond))
+                a.reshape(-1, *a.shape[2:])[take] for a in (
+                    height, confidence, f_peak, sigma_mm, reliability_db, aif, beyond))
             if precision is not None:
-                precision = _to_metric(precision)
-            reliable = _to_metric(reliable) & field
-            confidence[~field] = 0.0
+                precision = precision.reshape(-1)[take]
+            reliable = reliable.reshape(-1)[take] & ~hidden
+            confidence[hidden] = 0.0
     t_total = time.perf_counter() - t0
     h, w = tracker.shape
     meta.update({
@@ -398,7 +396,7 @@ def reconstruct(
         sigma_mm=sigma_mm,
         reliability_db=reliability_db,
         aif=aif,
-        pixel_size_mm=stack.pixel_size_mm,
+        pixel_size_mm=pixel_size,
         z_mm=z_mm,
         field=field,
         beyond=np.where(field & ~reliable, beyond, 0).astype(np.int8),
