@@ -152,7 +152,8 @@ class Alignment:
         frame's grid, and so magnifies the frame focused at ``z`` by ``1 / scale(z)``:
         a raised point lands further from the optical centre ``c`` than a low one at
         the same place (~1 % of the distance to the centre per mm of height at a 100 mm
-        working distance). Each reliable pixel at height ``h`` is moved to
+        working distance). Each reliable pixel at height ``h`` (the median of its 5x5
+        neighbourhood, unreliable pixels counting as ``h0``) is moved to
         ``c + (x - c) · scale(h) / scale(h0)``, with ``ln scale`` a least-squares line in
         ``z`` through the frames' scales, ``h0`` the median reliable height (the board,
         on a board: it stays where it is) and ``c`` the image centre (the principal
@@ -187,7 +188,11 @@ class Alignment:
         h0 = float(np.median(height_mm[sel])) if sel.any() else float(np.median(z))
         h, w = self.shape
         rows, cols = np.nonzero(sel)
-        f = np.exp(g * (np.clip(height_mm[sel], z.min(), z.max()) - h0))
+        # a pixel moves by its 5x5 neighbourhood's median height (unreliable ones count
+        # as h0): one noisy height does not scatter it away from its neighbours
+        local = cv2.medianBlur(np.where(sel, np.clip(height_mm, z.min(), z.max()), h0)
+                               .astype(np.float32), 5)
+        f = np.exp(g * (local[sel] - h0))
         cx, cy = (w - 1) / 2.0, (h - 1) / 2.0
         tx = np.rint(cx + (cols - cx) * f).astype(np.int64)
         ty = np.rint(cy + (rows - cy) * f).astype(np.int64)
