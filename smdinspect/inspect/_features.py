@@ -145,8 +145,8 @@ def body_blob(comp, height, reliable, T, p, *, search_mm: float,
 
 def _body_pair(comp, height, reliable, T, p, *,
                search_mm: float = BODY_SEARCH_MM) -> FeaturePair | None:
-    """The blob of about the body's area (0.8–1.2×, convex hull) nearest to the predicted
-    centre."""
+    """The blob of about the body's area (convex hull, :func:`_area_matches`) nearest to
+    the predicted centre."""
     import cv2
     from scipy.ndimage import binary_fill_holes
 
@@ -171,8 +171,8 @@ def _body_pair(comp, height, reliable, T, p, *,
             continue
         blob = binary_fill_holes(blob)
         rows, cols = np.nonzero(blob)
-        area = _hull_area_px(np.column_stack([cols, rows]).astype(np.float32)) * p * p
-        if not 0.8 <= area / nominal <= 1.2:
+        if not _area_matches(comp, _hull_area_px(np.column_stack([cols, rows])
+                                                 .astype(np.float32)) * p * p):
             continue
         # A blob cut by the search window's edge is not the whole body.
         if rows.min() == 0 or cols.min() == 0 or rows.max() == blob.shape[0] - 1 or \
@@ -384,11 +384,15 @@ def refine_with_features(pairs: list[FeaturePair], T0: np.ndarray, *, min_pairs:
 # Global pose from bodies: match measured body blobs to the reference layout.
 # --------------------------------------------------------------------------------------
 
-#: A measured blob matches a body when its convex hull's area is 0.8-1.2 times the
-#: nominal body area (as in the local body search) and its minimum-area rectangle's
+#: A measured blob matches a body when its convex hull's area matches the body's
+#: (:func:`_area_matches`, as in the local body search) and its minimum-area rectangle's
 #: sides lie within :data:`BLOB_SIDE_TOL_MM` (or 25 %) of the body's length and width
 #: (through shape from focus a body's blob grows by up to ~0.2 mm across: edge blur).
 BLOB_SIDE_TOL_MM = 0.25
+#: Width of the band by which shape from focus grows or shrinks a body's outline (edge
+#: bleed of half a focus window, unreliable notches): the area test allows it on small
+#: bodies, where 0.8-1.2 of the area is less than this band.
+BLOB_EDGE_MM = 0.05
 #: Two bodies closer than this (mm) do not define a rotation well enough to propose one.
 MIN_PAIR_SPAN_MM = 2.0
 
@@ -435,10 +439,21 @@ def _measured_blobs(height, reliable, level_mm: float, p: float) -> list[_Blob]:
     return out
 
 
+def _area_matches(comp, area_mm2: float) -> bool:
+    """A blob's area is the body's: 0.8-1.2 times its nominal area, or within its
+    outline moved :data:`BLOB_EDGE_MM` in or out (edge bleed is a band of fixed width:
+    on an 0402 it alone adds ~25 %)."""
+    L, Wd, e = comp.body_length_mm, comp.body_width_mm, BLOB_EDGE_MM
+    nominal = L * Wd
+    lo = min(0.8 * nominal, max(L - 2 * e, 0.0) * max(Wd - 2 * e, 0.0))
+    hi = max(1.2 * nominal, (L + 2 * e) * (Wd + 2 * e))
+    return lo <= area_mm2 <= hi
+
+
 def _blob_matches(comp, blob: _Blob) -> bool:
     L, Wd = max(comp.body_length_mm, comp.body_width_mm), min(comp.body_length_mm, comp.body_width_mm)
     a, b = blob.sides
-    if not 0.8 <= blob.area_mm2 / (L * Wd) <= 1.2:
+    if not _area_matches(comp, blob.area_mm2):
         return False
     return (abs(a - L) <= max(BLOB_SIDE_TOL_MM, 0.25 * L)
             and abs(b - Wd) <= max(BLOB_SIDE_TOL_MM, 0.25 * Wd))
