@@ -39,12 +39,16 @@ Joint level
 7. ``missing`` by colour: at least ``bare_missing_fraction`` of the visible pad looks
    like the bare finish (the all-in-focus colour does not need focus texture) and no
    reliable height reaches the joint's ``min_height_mm``.
-8. ``unreliable``: fewer than ``min_reliable_fraction`` of the solder area's pixels are
-   reliable, or no max height could be measured. Never a pass or a fail.
-9. ``bridge``: a path across the gap to a neighbouring pad of the same component is
+8. ``bridge``: a path across the gap to a neighbouring pad of the same component is
    covered higher than ``bridge_height_mm`` (``bridge_lead_height_mm`` between the feet
    of a gull-wing part, far from any body edge) along ``bridge_min_fraction`` of its
-   length.
+   length (the paths carry their own coverage test: judged whatever the solder area's).
+9. ``unreliable``: fewer than ``min_reliable_fraction`` of the solder area's pixels are
+   reliable, or no max height could be measured. Never a pass; a fail only when what is
+   measured is already a defect: a chip's solder area with at least half that fraction
+   and :data:`MIN_EVIDENCE_PIXELS` reliable whose percentile stands above
+   ``max_height_mm`` by more than its uncertainty is ``excess`` (the unmeasured rest
+   cannot lower it; on fewer pixels the body's bled edge can read that high).
 10. ``missing`` without a colour cue: the max height is below ``missing_height_mm``.
 11. ``insufficient``: below the joint's ``min_height_mm``.
 12. ``excess``: above the joint's ``max_height_mm``.
@@ -88,6 +92,9 @@ MIN_IN_FIELD = 0.95
 #: 120–161 µm for a true 350 µm). Below it the joint is ``unreliable`` unless the solder
 #: seen already reaches the band.
 MIN_PASS_REACH = 0.5
+#: Reliable pixels a solder area needs for its percentile to call ``excess`` when too
+#: little of the area is reliable to judge it otherwise (rule 9).
+MIN_EVIDENCE_PIXELS = 40
 
 
 def _um(x: float) -> str:
@@ -229,14 +236,25 @@ def _joint_rule(joint, comp, m: JointMeasurement, comp_result: ComponentResult,
     if bare and not (m.max_mm >= joint.min_height_mm):   # NaN (nothing measured) counts
         return Verdict.MISSING, (f"no solder: {m.bare_fraction:.0%} of the visible pad looks bare; "
                                  f"max height {_um(m.max_mm)}, {m.reliable_fraction:.0%} reliable")
-    if m.reliable_fraction < config.min_reliable_fraction or not math.isfinite(m.max_mm):
-        return Verdict.UNRELIABLE, (f"only {m.reliable_fraction:.0%} of the solder area is reliable "
-                                    f"(< {config.min_reliable_fraction:.0%}); not judged")
+    # A bridge is read on the gap's own paths (each must be covered), not on the solder
+    # area: it is judged however little of the solder area is reliable.
     bridge = config.bridge_lead_height_mm if comp.kind == "gullwing" else config.bridge_height_mm
     if math.isfinite(m.gap_mm) and m.gap_mm > bridge:
         return Verdict.BRIDGE, (f"solder across the gap to {m.gap_neighbour}: "
                                 f"{config.bridge_min_fraction:.0%} of a path stands above "
                                 f"{_um(m.gap_mm)} (> {_um(bridge)})")
+    if m.reliable_fraction < config.min_reliable_fraction or not math.isfinite(m.max_mm):
+        seen, u_seen = m.observed_mm, m.u_max_mm
+        if math.isfinite(seen) and m.n_pixels * m.reliable_fraction >= MIN_EVIDENCE_PIXELS \
+                and m.reliable_fraction >= 0.5 * config.min_reliable_fraction \
+                and seen - (u_seen if math.isfinite(u_seen) else 0.0) > joint.max_height_mm:
+            # Too little is measured to pass the joint, but what is measured already
+            # stands above the band: the unmeasured rest cannot lower it.
+            return Verdict.EXCESS, (f"solder seen at {_um(seen)} > max "
+                                    f"{_um(joint.max_height_mm)} on the {m.reliable_fraction:.0%} "
+                                    f"of the solder area that is reliable")
+        return Verdict.UNRELIABLE, (f"only {m.reliable_fraction:.0%} of the solder area is reliable "
+                                    f"(< {config.min_reliable_fraction:.0%}); not judged")
     h, u = m.max_mm, m.u_max_mm
     pm = f" ± {_um(u)}" if math.isfinite(u) else ""
     how = f" ({m.max_method})" if m.max_method else ""

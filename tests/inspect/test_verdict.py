@@ -121,3 +121,31 @@ def test_gap_limit_is_lower_between_gull_wing_feet(c2):
     chip, comp, chip_body = c2
     assert gap(chip, comp, chip_body, 0.038) is not Verdict.BRIDGE
     assert gap(chip, comp, chip_body, 0.060) is Verdict.BRIDGE
+
+
+def test_a_partly_measured_joint_is_excess_only_on_what_it_shows(c2):
+    joint = c2[0]
+    high = joint.max_height_mm + 0.05
+    # 25 % of 200 pixels reliable: too little to pass or to call it low...
+    r = _judge(c2, reliable_fraction=0.25, max_mm=joint.nominal_height_mm,
+               observed_mm=joint.nominal_height_mm, u_max_mm=0.005, max_method="percentile")
+    assert r.verdict is Verdict.UNRELIABLE
+    r = _judge(c2, reliable_fraction=0.25, max_mm=0.01, observed_mm=0.01, u_max_mm=0.005,
+               max_method="percentile")
+    assert r.verdict is Verdict.UNRELIABLE
+    # ...but solder already seen above the band is excess whatever the rest holds
+    r = _judge(c2, reliable_fraction=0.25, max_mm=high, observed_mm=high, u_max_mm=0.005,
+               max_method="percentile")
+    assert r.verdict is Verdict.EXCESS and "25%" in r.reason
+    # not when the excess is within its uncertainty, nor on a handful of pixels
+    r = _judge(c2, reliable_fraction=0.25, max_mm=high, observed_mm=high, u_max_mm=0.06,
+               max_method="percentile")
+    assert r.verdict is Verdict.UNRELIABLE
+    r = _judge(c2, reliable_fraction=0.15, max_mm=high, observed_mm=high, u_max_mm=0.005,
+               max_method="percentile")   # 30 pixels, less than half of the 40 % needed
+    assert r.verdict is Verdict.UNRELIABLE
+    # a bridge is read on the gap's own paths: judged on a poorly covered solder area
+    r = _judge(c2, reliable_fraction=0.25, max_mm=joint.nominal_height_mm,
+               observed_mm=joint.nominal_height_mm, u_max_mm=0.005, max_method="percentile",
+               gap_mm=0.2, gap_neighbour="C2.2")
+    assert r.verdict is Verdict.BRIDGE
