@@ -99,9 +99,11 @@ def test_heel_fillet_more_repeatable_than_the_foot_percentile(gullwing_sweeps):
     assert all(m == "foot" for v in gullwing_sweeps.values() for m in v[3])
     sd_fit, sd_pct = _pooled_sd(maxes), _pooled_sd(feet)
     # SOIC-8 band 130-572 µm: 10 % GR&R is σ = 7.4 µm. Here the fit reads 5.0 µm, the
-    # percentile (the max height before) 7.6 µm.
+    # percentile (the max height before) 7.3 µm without the 3-px own-window check and
+    # 5.5 µm with it (borrowed heights at the knee's edge are dropped; the fit is
+    # unchanged).
     assert sd_fit <= 6.5e-3, (sd_fit, sd_pct)
-    assert sd_fit <= 0.8 * sd_pct, (sd_fit, sd_pct)
+    assert sd_fit < 0.95 * sd_pct, (sd_fit, sd_pct)
     err = np.concatenate([v[0] - v[2] for v in gullwing_sweeps.values()])
     assert abs(float(np.mean(err))) <= 0.008, err
     assert float(np.max(np.abs(err))) <= 0.025, err
