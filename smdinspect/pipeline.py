@@ -118,9 +118,10 @@ def inspection_focus_config():
     of wrong (through shape from focus, tuning seeds 8-27: reliable pixels 0.3-0.5 of
     the way up good chip fillets off by > 0.1 mm, their 90th percentile 0.35 -> 0.06-0.10
     mm; recall 0.898 -> 0.910, right class 0.855 -> 0.867, false calls 3 -> 3, joints
-    unreliable 23.7 -> 24.3 %). No gap-spanning depth-edge square (``edge_gap_check``): at the knee of a
-    gull-wing lead it takes the top of the heel fillet too (the heel fit's spread over
-    re-placed sweeps went from 5.0 to 6.7 µm, tests/inspect/test_max_height_repeatability).
+    unreliable 23.7 -> 24.3 %). No gap-spanning depth-edge square (``edge_gap_check``): at
+    the knee of a gull-wing lead it takes the top of the heel fillet too (the heel fit's
+    spread over re-placed sweeps went from 5.0 to 6.7 µm,
+    tests/inspect/test_max_height_repeatability).
     The operator's curve shape (``fit_power=None``), not one chosen per sweep: the choice
     varies with the placement and adds to the gauge's spread (demo board, 6 re-placed
     sweeps: %GR&R SOIC-8 / 0805 / 0603 4.6 / 5.1 / 7.7 % fixed, 5.5 / 5.9 / 8.2 % chosen).

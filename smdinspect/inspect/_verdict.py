@@ -251,8 +251,9 @@ def _joint_rule(joint, comp, m: JointMeasurement, comp_result: ComponentResult,
             # Too little is measured to pass the joint, but what is measured already
             # stands above the band: the unmeasured rest cannot lower it.
             return Verdict.EXCESS, (f"solder seen at {_um(seen)} > max "
-                                    f"{_um(joint.max_height_mm)} on the {m.reliable_fraction:.0%} "
-                                    f"of the solder area that is reliable")
+                                    f"{_um(joint.max_height_mm)} on the "
+                                    f"{m.reliable_fraction:.0%} of the solder area that is "
+                                    f"reliable")
         return Verdict.UNRELIABLE, (f"only {m.reliable_fraction:.0%} of the solder area is reliable "
                                     f"(< {config.min_reliable_fraction:.0%}); not judged")
     h, u = m.max_mm, m.u_max_mm
