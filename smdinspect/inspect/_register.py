@@ -559,7 +559,13 @@ def _prefer_body_layout(height, reliable, aif, board, p, cfg, T, method, t_nomin
     T_bf, info_b = refine_with_features(pairs_b, T_b)
     if T_bf is not None and _moved_mm(T_b, T_bf, board) <= BODY_SEARCH_MM:
         T_b, method_b = T_bf, "bodies+features"
+        # the features again where the refined placement puts them (a fiducial missed
+        # from the layout's placement is found now), and the fit on all of them
         pairs_b = feature_pairs(height, reliable, aif, board, T_b, p)
+        T_bf, info_bf = refine_with_features(pairs_b, T_b)
+        if T_bf is not None and _moved_mm(T_b, T_bf, board) <= CONSENSUS_MM:
+            T_b, info_b = T_bf, info_bf
+            pairs_b = feature_pairs(height, reliable, aif, board, T_b, p)
     pairs_a = feature_pairs(height, reliable, aif, board, T, p)
     n_a, ok_a = _support(pairs_a, T)
     n_b, ok_b = _support(pairs_b, T_b)
