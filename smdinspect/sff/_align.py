@@ -159,7 +159,9 @@ class Alignment:
         on a board: it stays where it is) and ``c`` the image centre (the principal
         point of a lens looking straight down); unreliable pixels stay. Where two land
         on one pixel the higher wins (it hides the other from the lens); a pixel nothing
-        lands on was hidden behind a raised part's edge and is left unreliable. An
+        lands on was hidden behind a raised part's edge and is left unreliable, unless it
+        is a one-pixel gap between two landed pixels within a frame step of each other
+        (rounding where the shift grows by a pixel: it takes its neighbour). An
         output pixel is ``scale(h0)`` times the focused plane's pixel (``pixel_scale``).
 
         A magnification that grows with z is a rig that focuses with the lens (or z
@@ -204,6 +206,22 @@ class Alignment:
         key, src = key[order], src[order]
         last = np.append(key[1:] != key[:-1], True)          # the highest per target
         sources.reshape(-1)[key[last]] = src[last]
+        # A one-pixel gap between two landed pixels of about one height (within a frame
+        # step) is rounding where the shift grows by a pixel, not a hidden surface: it
+        # takes its neighbour. Gaps at a height step stay hidden.
+        flat = np.asarray(height_mm, np.float64).reshape(-1)
+        step = float(np.median(np.abs(np.diff(z))))
+        for axis in (1, 0):
+            gap = sources < 0
+            before, after = np.roll(sources, 1, axis), np.roll(sources, -1, axis)
+            fill = gap & (before >= 0) & (after >= 0)
+            edge = [slice(None)] * 2
+            for i in (0, -1):
+                edge[axis] = i
+                fill[tuple(edge)] = False
+            r, c = np.nonzero(fill)
+            near = np.abs(flat[before[r, c]] - flat[after[r, c]]) <= step
+            sources[r[near], c[near]] = before[r[near], c[near]]
         shift = np.hypot(tx - cols, ty - rows)
         info.update(corrected=True, reference_height_mm=round(h0, 5),
                     pixel_scale=round(float(np.exp(g * h0 + a)), 6),

@@ -176,6 +176,7 @@ def test_parallax_moves_a_raised_point_to_its_in_focus_position():
     h[20:40, 150:180] = 2.0
     rng = np.random.default_rng(TEST_SEEDS[0] + 7)
     h[120:190, 10:80] = rng.normal(0.0, 0.5, (70, 70))   # noise: no pixel should scatter
+    h[120:190, 178:198] = np.linspace(1.9, 0.0, 20)[None, :]   # a ramp falling outwards
     rel = np.ones((n, n), bool)
     rel[150:160, 150:160] = False                # an unreliable patch stays put
     src, info = al.parallax_sources(z, h, rel)
@@ -189,6 +190,7 @@ def test_parallax_moves_a_raised_point_to_its_in_focus_position():
     assert cols.mean() == pytest.approx(c + (164.5 - c) * f2, abs=0.3)
     assert rows.size >= 0.9 * 20 * 30           # a shrinking part keeps its area
     assert (src[125:185, 15:75] >= 0).all()      # a noisy flat patch keeps every pixel
+    assert (src[125:185, 178:196] >= 0).all()    # no rounding gaps on a steep slope
     assert (src < 0).any() and (src[150:160, 150:160] >= 0).all()
     assert np.all(src.reshape(-1)[np.ravel_multi_index(([150], [150]), (n, n))] ==
                   np.ravel_multi_index(([150], [150]), (n, n)))
