@@ -44,7 +44,7 @@ def render_height_field(
     z_exaggeration: float | None = None,
     filled: np.ndarray | None = None,
     max_side: int = VIEW_MAX_SIDE,
-    elevation_deg: float = 40.0,
+    elevation_deg: float = 55.0,
     azimuth_deg: float = -20.0,
     title: str = "3D view",
 ) -> np.ndarray:

@@ -66,7 +66,9 @@ def test_box_moves_the_expected_way():
     front = _red_centroid(_render(*_box_scene(160, 100), z_exaggeration=1))
     assert right[1] - left[1] > 0.25 * SIZE[0]  # +x (columns) goes right in the picture
     assert front[0] - back[0] > 0.1 * SIZE[1]  # the image's bottom edge is nearest
-    assert abs(left[0] - right[0]) < 0.1 * SIZE[1]  # moving along x keeps the depth
+    # moving along x keeps the depth, but for the 20° azimuth (its rows move by
+    # ~sin 20°·sin 55° of the shift: 31 px here)
+    assert abs(left[0] - right[0]) < 0.15 * SIZE[1]
 
 
 def test_taller_box_reaches_higher_in_the_picture():
