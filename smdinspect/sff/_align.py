@@ -206,22 +206,8 @@ class Alignment:
         key, src = key[order], src[order]
         last = np.append(key[1:] != key[:-1], True)          # the highest per target
         sources.reshape(-1)[key[last]] = src[last]
-        # A one-pixel gap between two landed pixels of about one height (within a frame
-        # step) is rounding where the shift grows by a pixel, not a hidden surface: it
-        # takes its neighbour. Gaps at a height step stay hidden.
-        flat = np.asarray(height_mm, np.float64).reshape(-1)
-        step = float(np.median(np.abs(np.diff(z))))
-        for axis in (1, 0):
-            gap = sources < 0
-            before, after = np.roll(sources, 1, axis), np.roll(sources, -1, axis)
-            fill = gap & (before >= 0) & (after >= 0)
-            edge = [slice(None)] * 2
-            for i in (0, -1):
-                edge[axis] = i
-                fill[tuple(edge)] = False
-            r, c = np.nonzero(fill)
-            near = np.abs(flat[before[r, c]] - flat[after[r, c]]) <= step
-            sources[r[near], c[near]] = before[r[near], c[near]]
+        _fill_rounding_gaps(sources, np.asarray(height_mm).reshape(-1),
+                            float(np.median(np.abs(np.diff(z)))))
         shift = np.hypot(tx - cols, ty - rows)
         info.update(corrected=True, reference_height_mm=round(h0, 5),
                     pixel_scale=round(float(np.exp(g * h0 + a)), 6),
@@ -240,6 +226,21 @@ class Alignment:
             return 0.0
         slope, mid = np.polyfit(np.arange(scales.size), scales, 1)
         return round(float(slope * (scales.size - 1) / max(np.mean(scales), 1e-9)), 4)
+
+
+def _fill_rounding_gaps(sources: np.ndarray, height: np.ndarray, step: float) -> None:
+    """Fill, in place, the one-pixel gaps (``sources`` < 0) of a parallax move between two
+    landed pixels whose heights (``height``, flat) differ by at most ``step``: rounding
+    where the shift grows by a pixel, not a hidden surface, so the gap takes its left
+    (then upper) neighbour. Gaps at a height step stay hidden."""
+    for axis in (1, 0):
+        line = np.moveaxis(sources, axis, -1)   # a view: writing to ``mid`` fills sources
+        before, mid, after = line[..., :-2], line[..., 1:-1], line[..., 2:]
+        gap = (mid < 0) & (before >= 0) & (after >= 0)
+        take = before[gap]
+        near = np.abs(height[take] - height[after[gap]]) <= step
+        idx = tuple(i[near] for i in np.nonzero(gap))
+        mid[idx] = take[near]
 
 
 def _small(gray: np.ndarray, scale: float) -> np.ndarray:
