@@ -6,7 +6,11 @@ of different frames must be brought onto one pixel grid before they are compared
 :func:`estimate_alignment` runs before the focus pass, on reduced grey copies: every
 frame is registered to its predecessor with OpenCV's ECC (enhanced correlation
 coefficient) maximisation under an affine motion, and the pairwise warps are chained
-(neighbours look alike in blur, far frames do not). The reference grid is then the
+(neighbours look alike in blur, far frames do not). The steps are then replaced by a
+thin-lens model of the sweep (:func:`_smooth_steps`: the scale a smooth function of z
+fitted to the frames that carry scale information, about one fixed centre), checked
+against direct registrations of frames a span apart; if those disagree with the model,
+only the steps of mostly blurred frames follow it. The reference grid is then the
 **most magnified** frame's: every other frame sees more of the scene, so the field
 every frame sees is nearly that whole frame (:attr:`Alignment.field`), and no frame is
 stretched past its own resolution.
@@ -43,6 +47,10 @@ MIN_CORRELATION = 0.3
 #: image's corners) marks the alignment inconsistent.
 CHECK_SPANS = 4
 CHECK_TOLERANCE_PX = 2.0
+#: A frame whose scale information (mean squared radial gradient of the contrast-
+#: normalised image) is below this fraction of the sweep's best is mostly blur: a direct
+#: registration with it neither confirms nor refutes the alignment.
+INFO_FRACTION = 0.1
 #: ECC runs coarse to fine over up to this many pyramid levels, the coarsest no smaller
 #: than _ECC_MIN_SIDE pixels.
 _ECC_LEVELS = 3
@@ -96,6 +104,7 @@ class Alignment:
     verified_spans: int = 0
     checks: int = 0
     noise_sigma: float = 0.0
+    model: dict = _field(default_factory=dict)
 
     @property
     def ok(self) -> bool:
@@ -138,6 +147,7 @@ class Alignment:
                             round(max(self.scale(n) for n in range(len(self.transforms))), 4)],
             "field_fraction": round(float(self.field.mean()), 4),
             "magnification_trend": self.magnification_trend(),
+            "model": dict(self.model),
             "transforms": [a.tolist() for a in self.transforms],
         }
 
@@ -302,36 +312,57 @@ def _ecc_pyramid(prev: np.ndarray, cur: np.ndarray, init: np.ndarray, n: int):
     return max(single, best, key=lambda r: r[0])
 
 
-def _check_chain(kept: dict[int, np.ndarray], to_frame: list[np.ndarray],
-                 scale: float) -> tuple[list[list[int]], int]:
-    """Loop closure: register frames a span apart directly (ECC started from the chain's
-    own answer) and compare. Each chained step may converge on noise or on shading that
-    stays with the sensor and still correlate; a direct registration over several steps
-    that converges elsewhere shows the chain is wrong. Returns the [i, j] pairs whose
-    direct and chained transforms move a point at the image's edge by more than
-    CHECK_TOLERANCE_PX apart, and how many pairs converged at all (those that did not
-    prove nothing either way)."""
+def _direct_spans(kept: dict[int, np.ndarray], to_frame: list[np.ndarray],
+                  scale: float) -> list[tuple[int, int, np.ndarray | None]]:
+    """Register the kept frames a span apart directly, ECC started from the chain's own
+    answer: (i, j, full-size step from frame i to frame j, or None when ECC did not
+    converge or correlated below MIN_CORRELATION)."""
     frames = sorted(kept)
-    bad = []
-    verified = 0
     s = np.diag([scale, scale, 1.0])
+    out: list[tuple[int, int, np.ndarray | None]] = []
     for i, j in zip(frames, frames[1:]):
-        a, b = kept[i], kept[j]
         chain = s @ to_frame[j] @ np.linalg.inv(to_frame[i]) @ np.linalg.inv(s)  # small px
         try:
-            cc, warp = _ecc(a, b, chain[:2].astype(np.float32))
+            cc, warp = _ecc(kept[i], kept[j], chain[:2].astype(np.float32))
         except cv2.error:
-            continue
+            cc = 0.0
         if cc < MIN_CORRELATION:
+            out.append((i, j, None))
+            continue
+        full = np.linalg.inv(s) @ np.vstack([warp, [0, 0, 1]]).astype(np.float64) @ s
+        out.append((i, j, full))
+    return out
+
+
+def _check_chain(spans: list[tuple[int, int, np.ndarray | None]], to_frame: list[np.ndarray],
+                 shape: tuple[int, int], scale_info: list[float], *, quiet: bool = False
+                 ) -> tuple[list[list[int]], int]:
+    """Loop closure: compare each direct registration of frames a span apart
+    (:func:`_direct_spans`) with the alignment's own answer. Each chained step may
+    converge on noise or on shading that stays with the sensor and still correlate; a
+    direct registration over several steps that converges elsewhere shows the alignment
+    is wrong. A span with a frame that carries less than INFO_FRACTION of the sweep's
+    best scale information (:func:`_content_centre`: all blur) proves nothing either
+    way, like one whose ECC did not converge. Returns the [i, j] pairs whose direct and
+    chained transforms move a point at the image's edge by more than CHECK_TOLERANCE_PX
+    apart, and how many pairs were compared."""
+    bad = []
+    verified = 0
+    best = max(scale_info) if scale_info else 0.0
+    h, w = shape
+    corners = np.array([[0, 0, 1], [w - 1, 0, 1], [0, h - 1, 1], [w - 1, h - 1, 1]], float).T
+    for i, j, warp in spans:
+        if warp is None or min(scale_info[i], scale_info[j]) < INFO_FRACTION * best:
             continue
         verified += 1
-        h, w = a.shape
-        corners = np.array([[0, 0, 1], [w - 1, 0, 1], [0, h - 1, 1], [w - 1, h - 1, 1]], float).T
-        moved = np.abs(warp.astype(float) @ corners - chain[:2] @ corners).max() / scale
+        chain = to_frame[j] @ np.linalg.inv(to_frame[i])
+        moved = np.abs(warp[:2] @ corners - chain[:2] @ corners).max()
         if moved > CHECK_TOLERANCE_PX:
             bad.append([i, j])
-            log.warning("alignment: frames %d and %d registered directly disagree with the "
-                        "chain of steps between them by %.1f px at the image edge", i, j, moved)
+            if not quiet:
+                log.warning("alignment: frames %d and %d registered directly disagree with "
+                            "the chain of steps between them by %.1f px at the image edge",
+                            i, j, moved)
     return bad, verified
 
 
@@ -377,6 +408,194 @@ def _replace_outlier_steps(steps: list[np.ndarray], failed: list[int],
     failed.sort()
 
 
+def _content_centre(small: np.ndarray) -> tuple[np.ndarray, float]:
+    """Where ECC measures a step, and how well the frame fixes a scale.
+
+    Returns the centroid of the image's squared gradient (``small`` pixel coordinates,
+    x then y: ECC follows gradients, so an affine step that gets the scale slightly wrong
+    is still right there) and the mean squared radial gradient
+    ``((∇I · (x − centre)) / width)²`` of the contrast-normalised image: the information a
+    frame carries about a scale about its centre (a defocused frame, all blur, carries
+    little, however well it correlates with its neighbour)."""
+    gx = cv2.Sobel(small, cv2.CV_32F, 1, 0, ksize=3)
+    gy = cv2.Sobel(small, cv2.CV_32F, 0, 1, ksize=3)
+    e = gx * gx + gy * gy
+    total = float(e.sum())
+    h, w = small.shape
+    xs = np.arange(w, dtype=np.float32) - (w - 1) / 2.0
+    ys = np.arange(h, dtype=np.float32) - (h - 1) / 2.0
+    info = float(np.mean((gx * xs[None, :] + gy * ys[:, None]) ** 2)) / (w * w)
+    if not total > 0:
+        return np.array([(w - 1) / 2.0, (h - 1) / 2.0]), 0.0
+    return np.array([float((e.sum(axis=0) * np.arange(w)).sum()) / total,
+                     float((e.sum(axis=1) * np.arange(h)).sum()) / total]), info
+
+
+def _robust_weights(resid: np.ndarray, base: np.ndarray, floor: float) -> np.ndarray:
+    """Tukey biweight of ``resid`` (scale: 4.685 × max(MAD σ, ``floor``)) times ``base``."""
+    used = resid[base > 0]
+    sigma = 1.4826 * float(np.median(np.abs(used - np.median(used)))) if used.size else 0.0
+    u = resid / (4.685 * max(sigma, floor))
+    return base * np.where(np.abs(u) < 1, (1 - u * u) ** 2, 0.0)
+
+
+def _smooth_steps(steps: list[np.ndarray], failed: list[int], z_mm: np.ndarray | None,
+                  centres: list[np.ndarray], scale_info: list[float],
+                  shape: tuple[int, int], spans: list[tuple[int, int, np.ndarray | None]],
+                  every_step: bool = True) -> tuple[list[np.ndarray], dict]:
+    """Replace the measured steps by a physical model of the sweep (in place; returns the
+    steps and a description).
+
+    Moving a camera or a focusing lens along its axis scales the image about the optical
+    centre ``c`` by a factor that is a smooth function of z; a real stage adds a small
+    sideways shift at each step. Chaining per-step ECC estimates instead lets each
+    frame's small error accumulate into pixels at the image edge, above all on frames
+    that are mostly blur (where only a raised part is sharp, ECC's scale is noise and
+    bias however well the frames correlate). So:
+
+    * each frame's scale information is the mean squared radial gradient of its
+      contrast-normalised image (:func:`_content_centre`); a step (or a direct
+      registration a span apart, ``spans``) weighs the smaller of its two frames', and
+      only those above INFO_FRACTION of the best shape the fit;
+    * the scale follows the thin lens (:func:`_fit_thin_lens`) fitted to their ln scale;
+    * ``c`` is the weighted least-squares fixed point of those steps and spans
+      (``(I − A) c = b``), pulled slightly towards the image centre;
+    * each step's sideways shift is where the measured step moves the point it was
+      measured best at (its template frame's gradient centroid) minus where the pure
+      scale about ``c`` moves it; shifts that stand out from the others (Tukey weights)
+      become their weighted median.
+
+    With ``every_step`` every step is replaced by the model; without it only the steps
+    with a frame below INFO_FRACTION (a rig that also turns or shears a little keeps what
+    ECC measured on the frames that show it).
+    """
+    n = len(steps)
+    info: dict = {"model": "measured steps"}
+    if n < 4:
+        return steps, info
+    z = np.arange(n, dtype=np.float64) if z_mm is None else np.asarray(z_mm, np.float64)
+    dz = np.diff(z)
+    if not np.all(dz != 0):
+        return steps, info
+    mid = 0.5 * (z[1:] + z[:-1])
+    log_step = np.array([0.5 * np.log(abs(np.linalg.det(a[:2, :2]))) for a in steps[1:]])
+    # a step weighs what the blurrier of its two frames tells about a scale
+    base = np.array([0.0 if k in failed else min(scale_info[k - 1], scale_info[k])
+                     for k in range(1, n)])
+    if np.count_nonzero(base) < 3:
+        return steps, info
+    zc = float(np.average(mid, weights=base))
+    i0 = list(range(n - 1))
+    i1 = list(range(1, n))
+    obs = list(log_step)
+    wts = list(base)
+    for i, j, warp in spans:   # direct registrations a span apart: a longer lever on the scale
+        if warp is not None:
+            i0.append(i)
+            i1.append(j)
+            obs.append(0.5 * float(np.log(abs(np.linalg.det(warp[:2, :2])))))
+            wts.append(min(scale_info[i], scale_info[j]))
+    half = float(max(np.max(np.abs(z - zc)), 1e-9))
+    wts = np.array(wts)
+    # only frames that carry scale information (not all blur) shape the curve
+    informative = wts >= INFO_FRACTION * float(np.max(wts))
+    if np.count_nonzero(informative) >= 3:
+        wts = np.where(informative, wts, 0.0)
+    a, b = _fit_thin_lens(np.array(obs), (z[i0] - zc) / half, (z[i1] - zc) / half, wts,
+                          floor=1e-4)
+    t = (z - zc) / half
+    log_s = np.diff(np.log1p(b * t) - np.log1p(a * t))
+    s = np.exp(log_s)
+    # the fixed point of the measured steps
+    h, w_img = shape
+    centre = np.array([(w_img - 1) / 2.0, (h - 1) / 2.0])
+    m = np.zeros((2, 2))
+    v = np.zeros(2)
+    pairs = [(base[k - 1], steps[k]) for k in range(1, n)]
+    pairs += [(min(scale_info[i], scale_info[j]), warp) for i, j, warp in spans
+              if warp is not None]   # a span's larger scale change fixes c far better
+    top = max(wt for wt, _ in pairs)
+    for wt, step in pairs:
+        if wt < INFO_FRACTION * top:
+            continue
+        ia = np.eye(2) - step[:2, :2]
+        m += wt * ia.T @ ia
+        v += wt * ia.T @ step[:2, 2]
+    ridge = 1e-3 * float(np.sum(base)) * float(np.median(np.abs(log_s))) ** 2
+    c = np.linalg.solve(m + ridge * np.eye(2), v + ridge * centre)
+    # each step's sideways shift at the point it was measured best
+    shift = np.zeros((n - 1, 2))
+    for k in range(1, n):
+        p = centres[k - 1]   # ECC's template is frame k - 1
+        measured = steps[k][:2, :2] @ p + steps[k][:2, 2]
+        shift[k - 1] = measured - (c + s[k - 1] * (p - c))
+    mag = np.hypot(*(shift - np.median(shift[base > 0], axis=0)).T)
+    ws = _robust_weights(mag, base, floor=0.25)
+    typical = np.array([_weighted_median(shift[:, i], ws) for i in (0, 1)]) if ws.sum() > 0 \
+        else np.zeros(2)
+    shift[ws <= 0] = typical
+    # every step follows the lens, or (``every_step`` False: a rig that also turns or
+    # shears a little) only those with a frame that carries no scale information
+    blurred = base < INFO_FRACTION * float(np.max(base))
+    if every_step:
+        blurred[:] = True
+    for k in np.nonzero(blurred)[0] + 1:
+        step = np.eye(3)
+        step[:2, :2] *= s[k - 1]
+        step[:2, 2] = (1 - s[k - 1]) * c + shift[k - 1]
+        steps[k] = step
+    info = {"model": "thin lens: scale (1 + b t) / (1 + a t), t = (z - z0) / half",
+            "modelled_steps": int(np.count_nonzero(blurred)),
+            "a": round(a, 6), "b": round(b, 6), "z0_mm": round(zc, 6),
+            "half_mm": round(half, 6),
+            "centre_px": [round(float(c[0]), 2), round(float(c[1]), 2)],
+            "shift_outliers": int(np.count_nonzero((ws <= 0) & (base > 0)))}
+    return steps, info
+
+
+def _fit_thin_lens(obs: np.ndarray, t0: np.ndarray, t1: np.ndarray, base: np.ndarray,
+                   floor: float) -> tuple[float, float]:
+    """Robust fit of the frames' scale as a thin lens makes it, to measured changes
+    ``obs[k] = ln scale(t1[k]) − ln scale(t0[k])`` weighted by ``base`` (t: z scaled to
+    [-1, 1] over the sweep).
+
+    Magnification is ``v / u``. A camera moving along its axis changes ``u`` linearly in
+    z: ``scale ∝ 1 / (1 + a·t)``. A rig that moves the lens or the sensor changes ``v``
+    linearly (and ``u`` much less, relative to its size): ``scale ∝ 1 + b·t``. Both are
+    fitted (Gauss-Newton under Tukey weights, ``|a|, |b| <= 0.9``: distances stay
+    positive over the sweep) and the one with the smaller weighted residual is kept.
+    Returns ``(a, b)``, one of them 0."""
+    best: tuple[float, float, float] | None = None
+    for which in ("a", "b"):
+        sign = -1.0 if which == "a" else 1.0
+        w = base.copy()
+        p = 0.0
+        for it in range(30):
+            r = obs - sign * (np.log1p(p * t1) - np.log1p(p * t0))
+            if it >= 3:   # plain least squares first: Tukey needs a start near the answer
+                w = _robust_weights(r, base, floor)
+            jac = sign * (t1 / (1 + p * t1) - t0 / (1 + p * t0))
+            den = float(np.sum(w * jac * jac))
+            if not den > 0:
+                break
+            p_new = float(np.clip(p + np.sum(w * jac * r) / den, -0.9, 0.9))
+            done = abs(p_new - p) < 1e-10 and it >= 3
+            p = p_new
+            if done:
+                break
+        r = obs - sign * (np.log1p(p * t1) - np.log1p(p * t0))
+        cost = float(np.sum(w * r * r) / max(np.sum(w), 1e-30))
+        if best is None or cost < best[0]:
+            best = (cost, p if which == "a" else 0.0, p if which == "b" else 0.0)
+    return best[1], best[2]
+
+
+def _weighted_median(x: np.ndarray, w: np.ndarray) -> float:
+    order = np.argsort(x)
+    cw = np.cumsum(w[order])
+    return float(x[order][np.searchsorted(cw, 0.5 * cw[-1])])
+
+
 def estimate_alignment(read_gray: Callable[[int], np.ndarray], n_frames: int, *,
                        z_mm: np.ndarray | None = None,
                        progress: Callable[[int, int], None] | None = None) -> Alignment:
@@ -405,6 +624,8 @@ def estimate_alignment(read_gray: Callable[[int], np.ndarray], n_frames: int, *,
     span = max(2, n_frames // CHECK_SPANS)
     check_frames = set(range(0, n_frames, span)) if n_frames >= 2 * span else set()
     kept: dict[int, np.ndarray] = {}
+    centres: list[np.ndarray] = []
+    scale_info: list[float] = []
     for n in range(n_frames):
         gray = read_gray(n)
         if shape is None:
@@ -414,6 +635,9 @@ def estimate_alignment(read_gray: Callable[[int], np.ndarray], n_frames: int, *,
         small = _small(gray, scale)
         if n in check_frames:
             kept[n] = small
+        centre, info = _content_centre(small)
+        centres.append(centre / scale)
+        scale_info.append(info)
         if prev is not None:
             cc, warp = _ecc_pyramid(prev, small, last, n)
             if cc < MIN_CORRELATION:
@@ -429,11 +653,17 @@ def estimate_alignment(read_gray: Callable[[int], np.ndarray], n_frames: int, *,
         if progress is not None:
             progress(n + 1, n_frames)
     _replace_outlier_steps(steps, failed, z_mm)
-    # chain: frame 0 coords -> frame n coords
-    to_frame = [steps[0]]
-    for st in steps[1:]:
-        to_frame.append(st @ to_frame[-1])
-    inconsistent, verified = _check_chain(kept, to_frame, scale)
+    # step k is measured best where frame k-1 (ECC's template) has its gradients
+    spans = _direct_spans(kept, _chain(steps), scale)
+    measured = [a.copy() for a in steps]
+    steps, model = _smooth_steps(steps, failed, z_mm, centres, scale_info, shape, spans)
+    to_frame = _chain(steps)
+    inconsistent, verified = _check_chain(spans, to_frame, shape, scale_info, quiet=True)
+    if inconsistent:   # the frames that show the lens best disagree with the pure scale
+        steps, model = _smooth_steps(measured, failed, z_mm, centres, scale_info, shape,
+                                     spans, every_step=False)
+        to_frame = _chain(steps)
+        inconsistent, verified = _check_chain(spans, to_frame, shape, scale_info)
     scales = [np.sqrt(abs(np.linalg.det(a[:2, :2]))) for a in to_frame]
     ref = int(np.argmax(scales))  # the frame in which one frame-0 pixel is largest
     inv_ref = np.linalg.inv(to_frame[ref])
@@ -442,7 +672,15 @@ def estimate_alignment(read_gray: Callable[[int], np.ndarray], n_frames: int, *,
                      field=_field(transforms, shape), correlation=correlation, failed=failed,
                      inconsistent=inconsistent, verified_spans=verified,
                      checks=max(0, len(kept) - 1),
-                     noise_sigma=float(np.median(sigmas)) if sigmas else 0.0)
+                     noise_sigma=float(np.median(sigmas)) if sigmas else 0.0, model=model)
+
+
+def _chain(steps: list[np.ndarray]) -> list[np.ndarray]:
+    """Frame 0 coordinates -> frame n coordinates, from the steps n-1 -> n."""
+    to_frame = [steps[0]]
+    for st in steps[1:]:
+        to_frame.append(st @ to_frame[-1])
+    return to_frame
 
 
 def _field(transforms: list[np.ndarray], shape: tuple[int, int]) -> np.ndarray:
