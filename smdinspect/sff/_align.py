@@ -367,9 +367,11 @@ def _check_chain(spans: list[tuple[int, int, np.ndarray | None]], to_frame: list
 
 
 def _replace_outlier_steps(steps: list[np.ndarray], failed: list[int],
-                           z_mm: np.ndarray | None) -> None:
+                           z_mm: np.ndarray | None) -> dict[int, str]:
     """Failed steps, and steps whose magnification change disagrees with the others,
     become the median of the good steps (in place; ``failed`` gains the outliers).
+    Returns a message for each outlier step (by frame; the caller decides whether it
+    matters: a step the thin-lens model replaces anyway does not).
 
     A lens's magnification changes smoothly with focus, by about the same factor per
     unit of z; ECC on a frame that is mostly blur and noise can converge to a wrong
@@ -378,21 +380,22 @@ def _replace_outlier_steps(steps: list[np.ndarray], failed: list[int],
     more than 6 MADs (and 0.2 %) from the median of the converged steps.
     """
     n = len(steps)
+    notes: dict[int, str] = {}
     if n < 4:
-        return
+        return notes
     dz = np.abs(np.diff(np.asarray(z_mm, float))) if z_mm is not None else np.ones(n - 1)
     dz = np.where(dz > 0, dz, np.median(dz[dz > 0]) if np.any(dz > 0) else 1.0)
     rate = np.array([0.5 * np.log(abs(np.linalg.det(a[:2, :2]))) for a in steps[1:]]) / dz
     good = np.array([i not in failed for i in range(1, n)])
     if good.sum() < 3:
-        return
+        return notes
     med = float(np.median(rate[good]))
     mad = 1.4826 * float(np.median(np.abs(rate[good] - med)))
     tol = max(6 * mad, 0.002 / float(np.median(dz)))
     bad = ~good | (np.abs(rate - med) > tol)
     keep = [steps[i + 1] for i in np.nonzero(~bad)[0]]
     if not keep:
-        return
+        return notes
     typical = np.median(np.stack(keep), axis=0)
     for i in np.nonzero(bad)[0]:
         scale = float(np.exp(med * (dz[i] - np.median(dz))))  # a longer step, more change
@@ -401,11 +404,12 @@ def _replace_outlier_steps(steps: list[np.ndarray], failed: list[int],
         steps[i + 1] = step
         i = int(i)
         if i + 1 not in failed:
-            log.warning("frame %d: alignment step to frame %d disagrees with the others' "
-                        "magnification change (%.2f %% against %.2f %% per mm); replaced by "
-                        "their median", i + 1, i, 100 * rate[i], 100 * med)
+            notes[i + 1] = (f"frame {i + 1}: alignment step to frame {i} disagrees with the "
+                            f"others' magnification change ({100 * rate[i]:.2f} % against "
+                            f"{100 * med:.2f} % per mm); replaced by their median")
             failed.append(i + 1)
     failed.sort()
+    return notes
 
 
 def _content_centre(small: np.ndarray) -> tuple[np.ndarray, float]:
@@ -442,7 +446,7 @@ def _robust_weights(resid: np.ndarray, base: np.ndarray, floor: float) -> np.nda
 def _smooth_steps(steps: list[np.ndarray], failed: list[int], z_mm: np.ndarray | None,
                   centres: list[np.ndarray], scale_info: list[float],
                   shape: tuple[int, int], spans: list[tuple[int, int, np.ndarray | None]],
-                  every_step: bool = True) -> tuple[list[np.ndarray], dict]:
+                  every_step: bool = True) -> tuple[list[np.ndarray], dict, set[int]]:
     """Replace the measured steps by a physical model of the sweep (in place; returns the
     steps and a description).
 
@@ -467,23 +471,24 @@ def _smooth_steps(steps: list[np.ndarray], failed: list[int], z_mm: np.ndarray |
 
     With ``every_step`` every step is replaced by the model; without it only the steps
     with a frame below INFO_FRACTION (a rig that also turns or shears a little keeps what
-    ECC measured on the frames that show it).
+    ECC measured on the frames that show it). Returns the steps, a description and the
+    frames whose step (from the frame before) the model replaced.
     """
     n = len(steps)
     info: dict = {"model": "measured steps"}
     if n < 4:
-        return steps, info
+        return steps, info, set()
     z = np.arange(n, dtype=np.float64) if z_mm is None else np.asarray(z_mm, np.float64)
     dz = np.diff(z)
     if not np.all(dz != 0):
-        return steps, info
+        return steps, info, set()
     mid = 0.5 * (z[1:] + z[:-1])
     log_step = np.array([0.5 * np.log(abs(np.linalg.det(a[:2, :2]))) for a in steps[1:]])
     # a step weighs what the blurrier of its two frames tells about a scale
     base = np.array([0.0 if k in failed else min(scale_info[k - 1], scale_info[k])
                      for k in range(1, n)])
     if np.count_nonzero(base) < 3:
-        return steps, info
+        return steps, info, set()
     zc = float(np.average(mid, weights=base))
     i0 = list(range(n - 1))
     i1 = list(range(1, n))
@@ -550,7 +555,7 @@ def _smooth_steps(steps: list[np.ndarray], failed: list[int], z_mm: np.ndarray |
             "half_mm": round(half, 6),
             "centre_px": [round(float(c[0]), 2), round(float(c[1]), 2)],
             "shift_outliers": int(np.count_nonzero((ws <= 0) & (base > 0)))}
-    return steps, info
+    return steps, info, {int(k) for k in np.nonzero(blurred)[0] + 1}
 
 
 def _fit_thin_lens(obs: np.ndarray, t0: np.ndarray, t1: np.ndarray, base: np.ndarray,
@@ -626,6 +631,7 @@ def estimate_alignment(read_gray: Callable[[int], np.ndarray], n_frames: int, *,
     kept: dict[int, np.ndarray] = {}
     centres: list[np.ndarray] = []
     scale_info: list[float] = []
+    notes: dict[int, str] = {}   # frame -> what went wrong with its step
     for n in range(n_frames):
         gray = read_gray(n)
         if shape is None:
@@ -642,8 +648,8 @@ def estimate_alignment(read_gray: Callable[[int], np.ndarray], n_frames: int, *,
             cc, warp = _ecc_pyramid(prev, small, last, n)
             if cc < MIN_CORRELATION:
                 failed.append(n)
-                log.warning("frame %d: alignment to frame %d failed (correlation %.2f); "
-                            "using the other steps' median", n, n - 1, cc)
+                notes[n] = (f"frame {n}: alignment to frame {n - 1} failed (correlation "
+                            f"{cc:.2f}); using the other steps' median")
                 warp = last
             last = warp
             correlation.append(float(cc))
@@ -652,18 +658,22 @@ def estimate_alignment(read_gray: Callable[[int], np.ndarray], n_frames: int, *,
         prev = small
         if progress is not None:
             progress(n + 1, n_frames)
-    _replace_outlier_steps(steps, failed, z_mm)
+    notes.update(_replace_outlier_steps(steps, failed, z_mm))
     # step k is measured best where frame k-1 (ECC's template) has its gradients
     spans = _direct_spans(kept, _chain(steps), scale)
     measured = [a.copy() for a in steps]
-    steps, model = _smooth_steps(steps, failed, z_mm, centres, scale_info, shape, spans)
+    steps, model, modelled = _smooth_steps(steps, failed, z_mm, centres, scale_info, shape,
+                                           spans)
     to_frame = _chain(steps)
     inconsistent, verified = _check_chain(spans, to_frame, shape, scale_info, quiet=True)
     if inconsistent:   # the frames that show the lens best disagree with the pure scale
-        steps, model = _smooth_steps(measured, failed, z_mm, centres, scale_info, shape,
-                                     spans, every_step=False)
+        steps, model, modelled = _smooth_steps(measured, failed, z_mm, centres, scale_info,
+                                               shape, spans, every_step=False)
         to_frame = _chain(steps)
         inconsistent, verified = _check_chain(spans, to_frame, shape, scale_info)
+    for n, note in sorted(notes.items()):
+        # a step the thin-lens model replaced is not used: nothing for the user to check
+        log.log(logging.DEBUG if n in modelled else logging.WARNING, note)
     scales = [np.sqrt(abs(np.linalg.det(a[:2, :2]))) for a in to_frame]
     ref = int(np.argmax(scales))  # the frame in which one frame-0 pixel is largest
     inv_ref = np.linalg.inv(to_frame[ref])
