@@ -138,7 +138,6 @@ class JointMeasurement:
     in_field_fraction: float = 1.0  # share of the pad inside the measured field
     fillet_reach: float = NAN       # chip meniscus: fraction of F the fitted pixels reach
     observed_mm: float = NAN        # the solder area's percentile (what the pixels show)
-    near_reliable: float = NAN      # chip: reliable share of the pad strip at the termination
     bare_fraction: float = NAN      # visible pad looking like bare finish (colour)
     gap_mm: float = NAN             # highest covered level towards a neighbour
     gap_neighbour: str = ""
@@ -585,10 +584,6 @@ def _measure_chip(comp, joint, win: _Win, config: InspectConfig, level: float,
         pad_u = comp.to_local(joint.polygon_mm) @ out
         length = float(pad_u.max()) - hl
         end = rel & (u >= hl + mg) & (u <= hl + length) & (np.abs(v_body) <= hw)
-        near = area & (u >= hl + mg) & (u <= hl + mg + max(0.25 * length, 2 * p)) & \
-            (np.abs(v_body) <= hw)
-        if near.any():
-            m.near_reliable = float((near & rel).sum() / near.sum())
         if length > 2 * mg and end.sum() >= 8:
             info: dict = {}
             F, uF = _meniscus(u[end] - hl, length, win.h[end], win.u[end], info)

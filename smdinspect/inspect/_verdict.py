@@ -56,9 +56,7 @@ Joint level
     ``min_fillet_reach`` of its height, the fillet's top was not measured and the max is
     an extrapolation. Such a joint is ``excess`` when the solder area's own percentile
     is already above the band (seen directly), ``missing`` when neither that percentile
-    nor the extrapolation reaches ``missing_height_mm`` (no colour cue) and the pad strip
-    beside the termination is a height step (less than
-    :data:`MAX_NEAR_RELIABLE_MISSING` of it reliable), ``ok`` when
+    nor the extrapolation reaches ``missing_height_mm`` (no colour cue), ``ok`` when
     that percentile — a lower bound of the fillet height, which rises towards the
     body — already reaches the band's minimum, or when the reach is at least
     :data:`MIN_PASS_REACH` × ``min_fillet_reach`` and the extrapolation lies in the
@@ -94,14 +92,6 @@ MIN_IN_FIELD = 0.95
 #: 120–161 µm for a true 350 µm). Below it the joint is ``unreliable`` unless the solder
 #: seen already reaches the band.
 MIN_PASS_REACH = 0.5
-#: A chip joint whose fillet top was not measured is called ``missing`` from its low
-#: heights only when less than this share of the pad strip beside the termination is
-#: reliable. Without solder the termination's end face stands on the bare pad: a height
-#: step, which shape from focus cannot measure within its window, so that strip is
-#: unreliable (0-6 % on the randomised tuning boards' missing joints); a fillet is a
-#: ramp it measures there (the good 0402 joints called missing read 57-63 %). With more
-#: of it reliable the low reading is a fillet whose top went unseen: ``unreliable``.
-MAX_NEAR_RELIABLE_MISSING = 0.25
 #: Reliable pixels a solder area needs for its percentile to call ``excess`` when too
 #: little of the area is reliable to judge it otherwise (rule 9).
 MIN_EVIDENCE_PIXELS = 40
@@ -277,11 +267,9 @@ def _joint_rule(joint, comp, m: JointMeasurement, comp_result: ComponentResult,
             return Verdict.EXCESS, (f"solder seen at {_um(seen)} > max {_um(joint.max_height_mm)} "
                                     f"(meniscus extrapolated to {_um(h)}, reach "
                                     f"{m.fillet_reach:.0%})")
-        if max(seen, h) < config.missing_height_mm and not math.isfinite(m.bare_fraction) \
-                and not m.near_reliable >= MAX_NEAR_RELIABLE_MISSING:   # NaN: nothing there
+        if max(seen, h) < config.missing_height_mm and not math.isfinite(m.bare_fraction):
             # Neither the solder seen nor its extrapolation (seen / reach, the generous
-            # reading) reaches the missing height, and the pad beside the termination is
-            # a height step shape from focus cannot measure: no solder.
+            # reading) reaches the missing height: no solder.
             return Verdict.MISSING, (f"no solder: the solder area reaches {_um(seen)} and its "
                                      f"meniscus extrapolates to {_um(h)} (reach "
                                      f"{m.fillet_reach:.0%}), both < "

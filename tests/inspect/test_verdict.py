@@ -91,17 +91,6 @@ def test_a_bare_pad_is_missing_even_when_too_little_of_it_is_reliable(c2):
     assert r.verdict is Verdict.UNRELIABLE
 
 
-def test_an_unseen_fillet_top_is_missing_only_beside_a_height_step(c2):
-    # Without solder the termination stands on the bare pad: the strip beside it is a
-    # height step shape from focus cannot measure. A good 0402 whose fillet top went
-    # unseen reads low too, but the ramp beside its termination is measured.
-    low = dict(max_mm=0.035, max_method="meniscus", fillet_reach=0.2, observed_mm=0.012)
-    assert _judge(c2, near_reliable=0.03, **low).verdict is Verdict.MISSING
-    assert _judge(c2, **low).verdict is Verdict.MISSING          # nothing measured there
-    r = _judge(c2, near_reliable=0.6, **low)
-    assert r.verdict is Verdict.UNRELIABLE and "fillet top not measured" in r.reason
-
-
 def test_without_colour_a_flat_pad_is_missing_and_a_low_fillet_insufficient(c2):
     joint = c2[0]
     r = _judge(c2, max_mm=0.01, max_method="percentile", observed_mm=0.01)
