@@ -330,8 +330,14 @@ def _consensus(src: np.ndarray, dst: np.ndarray, w: np.ndarray, T0: np.ndarray) 
 
 
 def refine_with_features(pairs: list[FeaturePair], T0: np.ndarray, *, min_pairs: int = 3,
-                         max_residual_mm: float = 0.03):
+                         max_residual_mm: float = CONSENSUS_MM):
     """Fit the placement to the feature pairs with outlier rejection.
+
+    A pair is an outlier when its residual exceeds both 3× the median of the kept ones
+    and ``max_residual_mm``: the bias a body centroid carries through shape from focus
+    (:data:`CONSENSUS_MM`); with a tighter floor the fit keeps the two or three bodies
+    whose biases happen to agree (small parts in one corner: a rotation 0.2° off)
+    and rejects the rest of a correctly placed board.
 
     Returns
     -------
@@ -362,11 +368,19 @@ def refine_with_features(pairs: list[FeaturePair], T0: np.ndarray, *, min_pairs:
             # The worst pair pulls the fit towards itself, so its own residual
             # understates it: judge it by its deletion residual (off the fit of the
             # others) against the others' spread under that fit.
+            # A pair far from the others is predicted less well by their fit (its
+            # rotation error grows with the distance): the allowance grows as the
+            # prediction's standard error, sqrt(1 + 1/n + d² / Σ d_j²) for a rigid fit
+            # of n pairs spread Σ d_j² about their centroid, d the pair's distance.
             rest = keep.copy()
             rest[worst] = False
             T_del = fit_rigid2d(src[rest], dst[rest], w[rest])
             r_del = np.hypot(*(apply2d(T_del, src) - dst).T)
-            if r_del[worst] <= max(3.0 * float(np.median(r_del[rest])), max_residual_mm):
+            c = src[rest].mean(axis=0)
+            spread = float(np.sum((src[rest] - c) ** 2))
+            lever = float(np.sqrt(1.0 + 1.0 / rest.sum()
+                                  + float(np.sum((src[worst] - c) ** 2)) / max(spread, 1e-9)))
+            if r_del[worst] <= lever * max(3.0 * float(np.median(r_del[rest])), max_residual_mm):
                 break
         elif res[worst] <= lim:
             break

@@ -483,8 +483,9 @@ def register_board(
     coverage = _coverage(height, reliable, p, ref_pts, ref_n, T_final, cfg.icp_distance_mm)
     meta["forward_fitness"] = fit
     meta["reference_coverage"] = coverage
-    # Most parts found where the placement puts them (RMS within half the consensus
-    # distance: shape-from-focus body centroids carry 10-40 µm of bias) and the
+    # Most parts found where the placement puts them (RMS within the consensus
+    # distance: shape-from-focus body centroids carry 10-60 µm of bias, the most
+    # through an ordinary lens) and the
     # measured raised points lie on the reference: the board is located even when a
     # large part is missing (it takes most of the reference's raised area, so the
     # correlation and the reference coverage drop; the joints then say what is missing).
@@ -496,7 +497,7 @@ def register_board(
     # locate the board however many parts are defective.
     by_features = ("features" in method and len(feat.get("used", [])) >= 3
                    and (len(used_bodies) >= 0.5 * len(board.components) or len(used_fids) >= 2)
-                   and float(feat.get("rms_mm", 1.0)) <= 0.5 * CONSENSUS_MM and fit >= cfg.min_fitness)
+                   and float(feat.get("rms_mm", 1.0)) <= CONSENSUS_MM and fit >= cfg.min_fitness)
     meta["located_by_features"] = bool(by_features)
     if math.isfinite(coverage) and not by_features:
         fit = min(fit, coverage)
