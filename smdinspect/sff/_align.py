@@ -85,7 +85,12 @@ class Alignment:
     verified_spans : int
         Spans whose direct registration converged (and so checked the chain).
     checks : int
-        Spans checked (0 for a stack too short to cut into spans).
+        Spans that could be checked: 0 for a stack too short to cut into spans, and a
+        span with a frame that is all blur (:data:`INFO_FRACTION`) does not count.
+    model : dict
+        The thin-lens model of the sweep (:func:`_smooth_steps`), for ``summary.json``.
+    modelled : tuple of int
+        Frames whose step from the frame before follows the model.
     noise_sigma : float
         Sensor noise σ in the frames' grey units: the median of the per-frame estimates
         (:func:`~smdinspect.sff.noise_sigma`). Texture inflates an estimate and
@@ -105,6 +110,7 @@ class Alignment:
     checks: int = 0
     noise_sigma: float = 0.0
     model: dict = _field(default_factory=dict)
+    modelled: tuple[int, ...] = ()
 
     @property
     def ok(self) -> bool:
@@ -113,11 +119,12 @@ class Alignment:
     @property
     def trusted(self) -> bool:
         """The chain agrees with every direct registration over a span of the sweep and
-        at least one of those converged (or the stack is too short to cut into spans and
-        no frame failed)."""
+        at least one of those converged (or no span can be checked and every failed
+        step was replaced by the thin-lens model)."""
         if self.inconsistent:
             return False
-        return self.verified_spans > 0 or (self.checks == 0 and not self.failed)
+        return self.verified_spans > 0 or (self.checks == 0
+                                           and not set(self.failed) - set(self.modelled))
 
     def scale(self, n: int) -> float:
         """Linear size of a reference pixel in frame n's pixels (≤ 1 by construction)."""
@@ -336,7 +343,7 @@ def _direct_spans(kept: dict[int, np.ndarray], to_frame: list[np.ndarray],
 
 def _check_chain(spans: list[tuple[int, int, np.ndarray | None]], to_frame: list[np.ndarray],
                  shape: tuple[int, int], scale_info: list[float], *, quiet: bool = False
-                 ) -> tuple[list[list[int]], int]:
+                 ) -> tuple[list[list[int]], int, int]:
     """Loop closure: compare each direct registration of frames a span apart
     (:func:`_direct_spans`) with the alignment's own answer. Each chained step may
     converge on noise or on shading that stays with the sensor and still correlate; a
@@ -345,14 +352,20 @@ def _check_chain(spans: list[tuple[int, int, np.ndarray | None]], to_frame: list
     best scale information (:func:`_content_centre`: all blur) proves nothing either
     way, like one whose ECC did not converge. Returns the [i, j] pairs whose direct and
     chained transforms move a point at the image's edge by more than CHECK_TOLERANCE_PX
-    apart, and how many pairs were compared."""
+    apart, how many pairs were compared, and how many could have been (frames not all
+    blur: a sweep whose spans are all blur cannot be checked, which is not a failed
+    check)."""
     bad = []
     verified = 0
+    checkable = 0
     best = max(scale_info) if scale_info else 0.0
     h, w = shape
     corners = np.array([[0, 0, 1], [w - 1, 0, 1], [0, h - 1, 1], [w - 1, h - 1, 1]], float).T
     for i, j, warp in spans:
-        if warp is None or min(scale_info[i], scale_info[j]) < INFO_FRACTION * best:
+        if min(scale_info[i], scale_info[j]) < INFO_FRACTION * best:
+            continue
+        checkable += 1
+        if warp is None:
             continue
         verified += 1
         chain = to_frame[j] @ np.linalg.inv(to_frame[i])
@@ -363,7 +376,7 @@ def _check_chain(spans: list[tuple[int, int, np.ndarray | None]], to_frame: list
                 log.warning("alignment: frames %d and %d registered directly disagree with "
                             "the chain of steps between them by %.1f px at the image edge",
                             i, j, moved)
-    return bad, verified
+    return bad, verified, checkable
 
 
 def _replace_outlier_steps(steps: list[np.ndarray], failed: list[int],
@@ -665,12 +678,13 @@ def estimate_alignment(read_gray: Callable[[int], np.ndarray], n_frames: int, *,
     steps, model, modelled = _smooth_steps(steps, failed, z_mm, centres, scale_info, shape,
                                            spans)
     to_frame = _chain(steps)
-    inconsistent, verified = _check_chain(spans, to_frame, shape, scale_info, quiet=True)
+    inconsistent, verified, checks = _check_chain(spans, to_frame, shape, scale_info,
+                                                  quiet=True)
     if inconsistent:   # the frames that show the lens best disagree with the pure scale
         steps, model, modelled = _smooth_steps(measured, failed, z_mm, centres, scale_info,
                                                shape, spans, every_step=False)
         to_frame = _chain(steps)
-        inconsistent, verified = _check_chain(spans, to_frame, shape, scale_info)
+        inconsistent, verified, checks = _check_chain(spans, to_frame, shape, scale_info)
     for n, note in sorted(notes.items()):
         # a step the thin-lens model replaced is not used: nothing for the user to check
         log.log(logging.DEBUG if n in modelled else logging.WARNING, note)
@@ -681,7 +695,7 @@ def estimate_alignment(read_gray: Callable[[int], np.ndarray], n_frames: int, *,
     return Alignment(transforms=transforms, reference=ref, shape=shape,
                      field=_field(transforms, shape), correlation=correlation, failed=failed,
                      inconsistent=inconsistent, verified_spans=verified,
-                     checks=max(0, len(kept) - 1),
+                     checks=checks, modelled=tuple(sorted(modelled)),
                      noise_sigma=float(np.median(sigmas)) if sigmas else 0.0, model=model)
 
 

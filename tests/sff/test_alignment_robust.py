@@ -84,3 +84,15 @@ def test_a_step_that_disagrees_with_the_others_is_replaced():
     kept = [a.copy() for a in same]
     _replace_outlier_steps(same, [], None)
     assert all(np.array_equal(a, b) for a, b in zip(same, kept))
+
+
+def test_a_sweep_whose_spans_are_all_blur_is_not_distrusted_for_it():
+    # a span of blurred frames proves nothing either way: with none left to check, the
+    # alignment is trusted when every failed step follows the thin-lens model
+    from smdinspect.sff._align import Alignment
+
+    common = dict(transforms=[np.eye(3)] * 5, reference=0, shape=(8, 8),
+                  field=np.ones((8, 8), bool), checks=0, verified_spans=0, failed=[3])
+    assert Alignment(**common, modelled=(1, 2, 3, 4)).trusted
+    assert not Alignment(**common, modelled=(1, 2)).trusted
+    assert not Alignment(**{**common, "checks": 1}, modelled=(1, 2, 3, 4)).trusted
