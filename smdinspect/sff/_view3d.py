@@ -54,9 +54,10 @@ def render_height_field(
     left, ``elevation_deg`` above the board, with a headlight and a key light from the
     upper left; the board stands on a grey plinth against a light background. Axes give
     x, y and z in mm (x, y in pixels when ``pixel_size_mm`` is None); the vertical
-    exaggeration is written on the picture. Heights are clipped to their 0.1–99.9
-    percentile range (plus a 5 % margin) for the picture only, so one spike cannot
-    flatten the rest. The render is deterministic: the same input gives the same image.
+    exaggeration is written on the picture. Heights are clipped to the 0.1–99.9
+    percentile range of the measured ones (the filled ones when fewer than
+    :data:`MIN_MEASURED_FOR_RANGE` are measured), plus a 5 % margin, for the picture
+    only, so one spike or a filled guess cannot flatten the rest. The render is deterministic: the same input gives the same image.
 
     Parameters
     ----------
@@ -229,6 +230,10 @@ def _nice(x: float) -> float:
     return best
 
 
+#: Measured (not filled) valid pixels needed for them alone to set the height range.
+MIN_MEASURED_FOR_RANGE = 100
+
+
 def _build_scene(height, colours, ok, fade, *, pixel_size_mm, z_exaggeration, max_side):
     import cv2
 
@@ -245,7 +250,11 @@ def _build_scene(height, colours, ok, fade, *, pixel_size_mm, z_exaggeration, ma
 
     n_valid = int(ok.sum())
     if n_valid:
-        lo, hi = np.percentile(height[ok], [0.1, 99.9])
+        # the range from the measured heights when there are enough: filled ones are
+        # guesses (a few filled from a sweep's far end flattened a real flat target)
+        measured = ok & ~fade if fade is not None else ok
+        ranged = height[measured] if measured.sum() >= MIN_MEASURED_FOR_RANGE else height[ok]
+        lo, hi = np.percentile(ranged, [0.1, 99.9])
         margin = 0.05 * (hi - lo)
         z = _fill_invalid(np.clip(z, lo - margin, hi + margin), weight)
         z = cv2.medianBlur(z.astype(np.float32), 3).astype(np.float64)  # tame lone spikes

@@ -184,3 +184,16 @@ def test_importing_sff_does_not_load_vtk():
     code = "import sys, smdinspect.sff; print(any(m.startswith('vtkmodules') for m in sys.modules))"
     out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True)
     assert out.stdout.strip() == "False"
+
+
+def test_filled_guesses_do_not_set_the_height_range():
+    # a flat target measured along its lines at -22..-20 mm; a few filled pixels took the
+    # sweep's far end (-80 mm): the picture's range is the measured one
+    height, rgb = _box_scene(100, 100)
+    height = -20.0 - 2.0 * height / max(float(height.max()), 1e-9)
+    filled = np.zeros(height.shape, bool)
+    filled[:, :70] = True
+    height[0:5, 0:10] = -80.0   # 0.5 % of the field
+    scene = _build_scene(height, rgb, np.ones(height.shape, bool), filled, pixel_size_mm=None,
+                         z_exaggeration=None, max_side=384)
+    assert scene.zlo > -23.0 and scene.zhi <= -19.8
