@@ -460,8 +460,7 @@ def _smooth_steps(steps: list[np.ndarray], failed: list[int], z_mm: np.ndarray |
                   centres: list[np.ndarray], scale_info: list[float],
                   shape: tuple[int, int], spans: list[tuple[int, int, np.ndarray | None]],
                   every_step: bool = True) -> tuple[list[np.ndarray], dict, set[int]]:
-    """Replace the measured steps by a physical model of the sweep (in place; returns the
-    steps and a description).
+    """Replace the measured steps by a physical model of the sweep (in place).
 
     Moving a camera or a focusing lens along its axis scales the image about the optical
     centre ``c`` by a factor that is a smooth function of z; a real stage adds a small
@@ -672,7 +671,6 @@ def estimate_alignment(read_gray: Callable[[int], np.ndarray], n_frames: int, *,
         if progress is not None:
             progress(n + 1, n_frames)
     notes.update(_replace_outlier_steps(steps, failed, z_mm))
-    # step k is measured best where frame k-1 (ECC's template) has its gradients
     spans = _direct_spans(kept, _chain(steps), scale)
     measured = [a.copy() for a in steps]
     steps, model, modelled = _smooth_steps(steps, failed, z_mm, centres, scale_info, shape,
