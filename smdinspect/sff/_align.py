@@ -538,7 +538,8 @@ def _smooth_steps(steps: list[np.ndarray], failed: list[int], z_mm: np.ndarray |
         ia = np.eye(2) - step[:2, :2]
         m += wt * ia.T @ ia
         v += wt * ia.T @ step[:2, 2]
-    ridge = 1e-3 * float(np.sum(base)) * float(np.median(np.abs(log_s))) ** 2
+    # (with no magnification change at all, e.g. identical frames, c is the image centre)
+    ridge = 1e-3 * float(np.sum(base)) * max(float(np.median(np.abs(log_s))), 1e-6) ** 2
     c = np.linalg.solve(m + ridge * np.eye(2), v + ridge * centre)
     # each step's sideways shift at the point it was measured best
     shift = np.zeros((n - 1, 2))

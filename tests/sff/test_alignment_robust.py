@@ -96,3 +96,25 @@ def test_a_sweep_whose_spans_are_all_blur_is_not_distrusted_for_it():
     assert Alignment(**common, modelled=(1, 2, 3, 4)).trusted
     assert not Alignment(**common, modelled=(1, 2)).trusted
     assert not Alignment(**{**common, "checks": 1}, modelled=(1, 2, 3, 4)).trusted
+
+
+def test_frames_without_any_magnification_change_align_to_the_identity():
+    # identical frames: ECC returns the identity, the thin-lens model has no centre to
+    # find (it crashed on a singular system before the image centre was its fallback)
+    import cv2
+
+    from smdinspect.sff import estimate_alignment
+
+    rng = np.random.default_rng(TEST_SEEDS[0] + 3)
+    img = cv2.GaussianBlur((rng.random((96, 128)) * 255).astype(np.float32), (0, 0), 1.5)
+    al = estimate_alignment(lambda k: img, 8, z_mm=np.arange(8) * 0.1)
+    assert al.trusted and not al.failed
+    assert np.abs(np.array(al.transforms) - np.eye(3)).max() < 1e-6
+    # exactly the identity at every step and span (what ECC returns on identical frames)
+    from smdinspect.sff._align import _smooth_steps
+
+    steps, info, modelled = _smooth_steps([np.eye(3) for _ in range(8)], [], np.arange(8) * 0.1,
+                                          [np.array([10.0, 10.0])] * 8, [1.0] * 8, (20, 20),
+                                          [(0, 4, np.eye(3)), (4, 7, np.eye(3))])
+    assert info["centre_px"] == [9.5, 9.5] and modelled == set(range(1, 8))
+    assert np.abs(np.array(steps) - np.eye(3)).max() == 0.0
