@@ -7,7 +7,7 @@ of different frames must be brought onto one pixel grid before they are compared
 frame is registered to its predecessor with OpenCV's ECC (enhanced correlation
 coefficient) maximisation under an affine motion, and the pairwise warps are chained
 (neighbours look alike in blur, far frames do not). The steps are then replaced by a
-thin-lens model of the sweep (:func:`_smooth_steps`: the scale a smooth function of z
+thin-lens model of the sweep (:func:`_fit_sweep`: the scale a smooth function of z
 fitted to the frames that carry scale information, about one fixed centre), checked
 against direct registrations of frames a span apart; if those disagree with the model,
 only the steps of mostly blurred frames follow it. The reference grid is then the
@@ -88,7 +88,7 @@ class Alignment:
         Spans that could be checked: 0 for a stack too short to cut into spans, and a
         span with a frame that is all blur (:data:`INFO_FRACTION`) does not count.
     model : dict
-        The thin-lens model of the sweep (:func:`_smooth_steps`), for ``summary.json``.
+        The thin-lens model of the sweep (:func:`_fit_sweep`), for ``summary.json``.
     modelled : tuple of int
         Frames whose step from the frame before follows the model.
     noise_sigma : float
@@ -398,7 +398,7 @@ def _replace_outlier_steps(steps: list[np.ndarray], failed: list[int],
         return notes
     dz = np.abs(np.diff(np.asarray(z_mm, float))) if z_mm is not None else np.ones(n - 1)
     dz = np.where(dz > 0, dz, np.median(dz[dz > 0]) if np.any(dz > 0) else 1.0)
-    rate = np.array([0.5 * np.log(abs(np.linalg.det(a[:2, :2]))) for a in steps[1:]]) / dz
+    rate = np.array([_log_scale(a) for a in steps[1:]]) / dz
     good = np.array([i not in failed for i in range(1, n)])
     if good.sum() < 3:
         return notes
@@ -456,11 +456,41 @@ def _robust_weights(resid: np.ndarray, base: np.ndarray, floor: float) -> np.nda
     return base * np.where(np.abs(u) < 1, (1 - u * u) ** 2, 0.0)
 
 
-def _smooth_steps(steps: list[np.ndarray], failed: list[int], z_mm: np.ndarray | None,
-                  centres: list[np.ndarray], scale_info: list[float],
-                  shape: tuple[int, int], spans: list[tuple[int, int, np.ndarray | None]],
-                  every_step: bool = True) -> tuple[list[np.ndarray], dict, set[int]]:
-    """Replace the measured steps by a physical model of the sweep (in place).
+@dataclass(frozen=True, eq=False)
+class _Sweep:
+    """The thin-lens model of a sweep (:func:`_fit_sweep`), per step n-1 -> n."""
+
+    scale: np.ndarray     # (n-1,) the model's scale of each step
+    centre: np.ndarray    # (2,) the centre of expansion, full-size pixels
+    shift: np.ndarray     # (n-1, 2) each step's sideways shift
+    blurred: np.ndarray   # (n-1,) bool: a frame of the step carries no scale information
+    info: dict            # for summary.json
+
+    def steps(self, measured: list[np.ndarray], *, every_step: bool
+              ) -> tuple[list[np.ndarray], set[int]]:
+        """The steps with the model's in place of the measured ones: every step, or
+        (``every_step`` False: a rig that also turns or shears a little keeps what ECC
+        measured on the frames that show it) only the blurred ones. Returns the steps and
+        the frames whose step (from the frame before) follows the model."""
+        use = np.ones_like(self.blurred) if every_step else self.blurred
+        out = list(measured)
+        for k in np.nonzero(use)[0] + 1:
+            step = np.eye(3)
+            step[:2, :2] *= self.scale[k - 1]
+            step[:2, 2] = (1 - self.scale[k - 1]) * self.centre + self.shift[k - 1]
+            out[k] = step
+        return out, {int(k) for k in np.nonzero(use)[0] + 1}
+
+
+def _log_scale(a: np.ndarray) -> float:
+    """ln of the linear scale of an affine map (its 2 x 2 part's determinant, rooted)."""
+    return 0.5 * float(np.log(abs(np.linalg.det(a[:2, :2]))))
+
+
+def _fit_sweep(steps: list[np.ndarray], failed: list[int], z_mm: np.ndarray | None,
+               centres: list[np.ndarray], scale_info: list[float], shape: tuple[int, int],
+               spans: list[tuple[int, int, np.ndarray | None]]) -> _Sweep | None:
+    """A physical model of the sweep from the measured steps (None: too few to fit).
 
     Moving a camera or a focusing lens along its axis scales the image about the optical
     centre ``c`` by a factor that is a smooth function of z; a real stage adds a small
@@ -480,95 +510,66 @@ def _smooth_steps(steps: list[np.ndarray], failed: list[int], z_mm: np.ndarray |
       measured best at (its template frame's gradient centroid) minus where the pure
       scale about ``c`` moves it; shifts that stand out from the others (Tukey weights)
       become their weighted median.
-
-    With ``every_step`` every step is replaced by the model; without it only the steps
-    with a frame below INFO_FRACTION (a rig that also turns or shears a little keeps what
-    ECC measured on the frames that show it). Returns the steps, a description and the
-    frames whose step (from the frame before) the model replaced.
     """
     n = len(steps)
-    info: dict = {"model": "measured steps"}
     if n < 4:
-        return steps, info, set()
+        return None
     z = np.arange(n, dtype=np.float64) if z_mm is None else np.asarray(z_mm, np.float64)
     dz = np.diff(z)
     if not np.all(dz != 0):
-        return steps, info, set()
-    mid = 0.5 * (z[1:] + z[:-1])
-    log_step = np.array([0.5 * np.log(abs(np.linalg.det(a[:2, :2]))) for a in steps[1:]])
+        return None
     # a step weighs what the blurrier of its two frames tells about a scale
     base = np.array([0.0 if k in failed else min(scale_info[k - 1], scale_info[k])
                      for k in range(1, n)])
     if np.count_nonzero(base) < 3:
-        return steps, info, set()
-    zc = float(np.average(mid, weights=base))
-    i0 = list(range(n - 1))
-    i1 = list(range(1, n))
-    obs = list(log_step)
-    wts = list(base)
-    for i, j, warp in spans:   # direct registrations a span apart: a longer lever on the scale
-        if warp is not None:
-            i0.append(i)
-            i1.append(j)
-            obs.append(0.5 * float(np.log(abs(np.linalg.det(warp[:2, :2])))))
-            wts.append(min(scale_info[i], scale_info[j]))
-    half = float(max(np.max(np.abs(z - zc)), 1e-9))
+        return None
+    zc = float(np.average(0.5 * (z[1:] + z[:-1]), weights=base))
+    # the measured changes of scale: every step, and the direct registrations a span
+    # apart (a longer lever on the scale and on the centre)
+    pairs = [(k - 1, k, steps[k], base[k - 1]) for k in range(1, n)]
+    pairs += [(i, j, warp, min(scale_info[i], scale_info[j])) for i, j, warp in spans
+              if warp is not None]
+    i0, i1, maps, wts = (list(x) for x in zip(*pairs))
     wts = np.array(wts)
-    # only frames that carry scale information (not all blur) shape the curve
+    # only frames that carry scale information (not all blur) shape the curve and c
     informative = wts >= INFO_FRACTION * float(np.max(wts))
-    if np.count_nonzero(informative) >= 3:
-        wts = np.where(informative, wts, 0.0)
-    a, b = _fit_thin_lens(np.array(obs), (z[i0] - zc) / half, (z[i1] - zc) / half, wts,
-                          floor=1e-4)
+    fit_wts = np.where(informative, wts, 0.0) if np.count_nonzero(informative) >= 3 else wts
+    half = float(max(np.max(np.abs(z - zc)), 1e-9))
+    a, b = _fit_thin_lens(np.array([_log_scale(m) for m in maps]), (z[i0] - zc) / half,
+                          (z[i1] - zc) / half, fit_wts, floor=1e-4)
     t = (z - zc) / half
     log_s = np.diff(np.log1p(b * t) - np.log1p(a * t))
     s = np.exp(log_s)
-    # the fixed point of the measured steps
+    # the fixed point of the informative steps and spans; with no magnification change
+    # at all (e.g. identical frames) the image centre
     h, w_img = shape
     centre = np.array([(w_img - 1) / 2.0, (h - 1) / 2.0])
-    m = np.zeros((2, 2))
-    v = np.zeros(2)
-    pairs = [(base[k - 1], steps[k]) for k in range(1, n)]
-    pairs += [(min(scale_info[i], scale_info[j]), warp) for i, j, warp in spans
-              if warp is not None]   # a span's larger scale change fixes c far better
-    top = max(wt for wt, _ in pairs)
-    for wt, step in pairs:
-        if wt < INFO_FRACTION * top:
-            continue
-        ia = np.eye(2) - step[:2, :2]
-        m += wt * ia.T @ ia
-        v += wt * ia.T @ step[:2, 2]
-    # (with no magnification change at all, e.g. identical frames, c is the image centre)
+    lhs = np.zeros((2, 2))
+    rhs = np.zeros(2)
+    for wt, m in zip(wts[informative], [m for m, k in zip(maps, informative) if k]):
+        ia = np.eye(2) - m[:2, :2]
+        lhs += wt * ia.T @ ia
+        rhs += wt * ia.T @ m[:2, 2]
     ridge = 1e-3 * float(np.sum(base)) * max(float(np.median(np.abs(log_s))), 1e-6) ** 2
-    c = np.linalg.solve(m + ridge * np.eye(2), v + ridge * centre)
-    # each step's sideways shift at the point it was measured best
-    shift = np.zeros((n - 1, 2))
-    for k in range(1, n):
-        p = centres[k - 1]   # ECC's template is frame k - 1
-        measured = steps[k][:2, :2] @ p + steps[k][:2, 2]
-        shift[k - 1] = measured - (c + s[k - 1] * (p - c))
+    c = np.linalg.solve(lhs + ridge * np.eye(2), rhs + ridge * centre)
+    # each step's sideways shift at the point it was measured best (ECC's template is
+    # frame k - 1)
+    shift = np.array([steps[k][:2, :2] @ centres[k - 1] + steps[k][:2, 2]
+                      - (c + s[k - 1] * (centres[k - 1] - c)) for k in range(1, n)])
     mag = np.hypot(*(shift - np.median(shift[base > 0], axis=0)).T)
     ws = _robust_weights(mag, base, floor=0.25)
-    typical = np.array([_weighted_median(shift[:, i], ws) for i in (0, 1)]) if ws.sum() > 0 \
-        else np.zeros(2)
-    shift[ws <= 0] = typical
-    # every step follows the lens, or (``every_step`` False: a rig that also turns or
-    # shears a little) only those with a frame that carries no scale information
-    blurred = base < INFO_FRACTION * float(np.max(base))
-    if every_step:
-        blurred[:] = True
-    for k in np.nonzero(blurred)[0] + 1:
-        step = np.eye(3)
-        step[:2, :2] *= s[k - 1]
-        step[:2, 2] = (1 - s[k - 1]) * c + shift[k - 1]
-        steps[k] = step
+    if ws.sum() > 0:
+        shift[ws <= 0] = [np.quantile(shift[:, i], 0.5, weights=ws, method="inverted_cdf")
+                          for i in (0, 1)]
+    else:
+        shift[ws <= 0] = 0.0
     info = {"model": "thin lens: scale (1 + b t) / (1 + a t), t = (z - z0) / half",
-            "modelled_steps": int(np.count_nonzero(blurred)),
             "a": round(a, 6), "b": round(b, 6), "z0_mm": round(zc, 6),
             "half_mm": round(half, 6),
             "centre_px": [round(float(c[0]), 2), round(float(c[1]), 2)],
             "shift_outliers": int(np.count_nonzero((ws <= 0) & (base > 0)))}
-    return steps, info, {int(k) for k in np.nonzero(blurred)[0] + 1}
+    return _Sweep(scale=s, centre=c, shift=shift,
+                  blurred=base < INFO_FRACTION * float(np.max(base)), info=info)
 
 
 def _fit_thin_lens(obs: np.ndarray, t0: np.ndarray, t1: np.ndarray, base: np.ndarray,
@@ -606,12 +607,6 @@ def _fit_thin_lens(obs: np.ndarray, t0: np.ndarray, t1: np.ndarray, base: np.nda
         if best is None or cost < best[0]:
             best = (cost, p if which == "a" else 0.0, p if which == "b" else 0.0)
     return best[1], best[2]
-
-
-def _weighted_median(x: np.ndarray, w: np.ndarray) -> float:
-    order = np.argsort(x)
-    cw = np.cumsum(w[order])
-    return float(x[order][np.searchsorted(cw, 0.5 * cw[-1])])
 
 
 def estimate_alignment(read_gray: Callable[[int], np.ndarray], n_frames: int, *,
@@ -673,22 +668,27 @@ def estimate_alignment(read_gray: Callable[[int], np.ndarray], n_frames: int, *,
             progress(n + 1, n_frames)
     notes.update(_replace_outlier_steps(steps, failed, z_mm))
     spans = _direct_spans(kept, _chain(steps), scale)
-    measured = [a.copy() for a in steps]
-    steps, model, modelled = _smooth_steps(steps, failed, z_mm, centres, scale_info, shape,
-                                           spans)
-    to_frame = _chain(steps)
-    inconsistent, verified, checks = _check_chain(spans, to_frame, shape, scale_info,
-                                                  quiet=True)
-    if inconsistent:   # the frames that show the lens best disagree with the pure scale
-        steps, model, modelled = _smooth_steps(measured, failed, z_mm, centres, scale_info,
-                                               shape, spans, every_step=False)
+    sweep = _fit_sweep(steps, failed, z_mm, centres, scale_info, shape, spans)
+    model: dict = {"model": "measured steps"}
+    modelled: set[int] = set()
+    if sweep is None:
         to_frame = _chain(steps)
         inconsistent, verified, checks = _check_chain(spans, to_frame, shape, scale_info)
+    else:
+        # every step follows the lens, unless the frames that show it best disagree with
+        # a pure scale: then only the blurred ones
+        for every_step in (True, False):
+            used, modelled = sweep.steps(steps, every_step=every_step)
+            to_frame = _chain(used)
+            inconsistent, verified, checks = _check_chain(spans, to_frame, shape, scale_info,
+                                                          quiet=every_step)
+            model = {**sweep.info, "modelled_steps": len(modelled)}
+            if not inconsistent:
+                break
     for n, note in sorted(notes.items()):
         # a step the thin-lens model replaced is not used: nothing for the user to check
         log.log(logging.DEBUG if n in modelled else logging.WARNING, note)
-    scales = [np.sqrt(abs(np.linalg.det(a[:2, :2]))) for a in to_frame]
-    ref = int(np.argmax(scales))  # the frame in which one frame-0 pixel is largest
+    ref = int(np.argmax([_log_scale(a) for a in to_frame]))  # where a frame-0 pixel is largest
     inv_ref = np.linalg.inv(to_frame[ref])
     transforms = [a @ inv_ref for a in to_frame]
     return Alignment(transforms=transforms, reference=ref, shape=shape,

@@ -57,7 +57,8 @@ def render_height_field(
     exaggeration is written on the picture. Heights are clipped to the 0.1–99.9
     percentile range of the measured ones (the filled ones when fewer than
     :data:`MIN_MEASURED_FOR_RANGE` are measured), plus a 5 % margin, for the picture
-    only, so one spike or a filled guess cannot flatten the rest. The render is deterministic: the same input gives the same image.
+    only, so one spike or a filled guess cannot flatten the rest. The render is
+    deterministic: the same input gives the same image.
 
     Parameters
     ----------

@@ -111,10 +111,12 @@ def test_frames_without_any_magnification_change_align_to_the_identity():
     assert al.trusted and not al.failed
     assert np.abs(np.array(al.transforms) - np.eye(3)).max() < 1e-6
     # exactly the identity at every step and span (what ECC returns on identical frames)
-    from smdinspect.sff._align import _smooth_steps
+    from smdinspect.sff._align import _fit_sweep
 
-    steps, info, modelled = _smooth_steps([np.eye(3) for _ in range(8)], [], np.arange(8) * 0.1,
-                                          [np.array([10.0, 10.0])] * 8, [1.0] * 8, (20, 20),
-                                          [(0, 4, np.eye(3)), (4, 7, np.eye(3))])
+    sweep = _fit_sweep([np.eye(3) for _ in range(8)], [], np.arange(8) * 0.1,
+                       [np.array([10.0, 10.0])] * 8, [1.0] * 8, (20, 20),
+                       [(0, 4, np.eye(3)), (4, 7, np.eye(3))])
+    steps, modelled = sweep.steps([np.eye(3) for _ in range(8)], every_step=True)
+    info = sweep.info
     assert info["centre_px"] == [9.5, 9.5] and modelled == set(range(1, 8))
     assert np.abs(np.array(steps) - np.eye(3)).max() == 0.0
