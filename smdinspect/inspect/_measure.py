@@ -61,7 +61,10 @@ Gaps
     ``gap_margin_mm`` away from the pads and ``body_margin_mm`` away from the body, is
     cut into paths running from one pad to the other. A path is covered at height z
     when ``bridge_min_fraction`` of its reliable pixels stand higher; ``gap_mm`` is the
-    highest covered z over the paths. Along a chip's sides the band between the body's
+    highest covered z over the paths. A path with fewer than half its pixels reliable
+    has no level of its own (a specular web is often mostly unreliable); the reliable
+    pixels of all such paths of a gap are pooled instead, and their covered level is
+    ``gap_sparse_mm`` (with at least :data:`MIN_SPARSE_GAP_PIXELS` of them). Along a chip's sides the band between the body's
     nominal edge and ``body_margin_mm`` is read too (a web that wets the body lies mostly
     there), with the measured body left out; a path there counts only where it is level
     (its median within ``bridge_height_mm`` of its covered z: a path straddling the
@@ -142,6 +145,9 @@ class JointMeasurement:
     gap_mm: float = NAN             # highest covered level towards a neighbour
     gap_neighbour: str = ""
     gap_fraction: float = NAN
+    gap_sparse_mm: float = NAN      # covered level of the pooled pixels of sparse paths
+    gap_sparse_n: int = 0           # ... and how many pixels that is
+    gap_sparse_neighbour: str = ""
     level_mm: float = 0.0           # local board level removed
     polygon_px: np.ndarray | None = field(default=None, repr=False)
 
@@ -762,17 +768,27 @@ def _measure_gullwing(comp, joint, win: _Win, config: InspectConfig, level: floa
 LEVEL_PATH_BODY_GAP_MM = 0.1
 
 
+#: Reliable pixels the sparse paths of a gap must pool for their level to count.
+MIN_SPARSE_GAP_PIXELS = 10
+
+
 def _path_level(h: np.ndarray, valid: np.ndarray, config: InspectConfig, *,
                 level: bool = False, below_mm: float = NAN):
-    """Best covered level over the paths (rows) of a (n_paths × n_along) grid.
+    """(best covered level over the paths (rows) of a (n_paths × n_along) grid, the
+    share of that path above ``bridge_height_mm``, the reliable heights of the paths
+    too sparsely measured to have a level of their own).
 
     With ``level`` a path counts only where its heights are level along it: the median
     stands within ``bridge_height_mm`` of the covered height (a web's top runs along
     the body at one height; a path that straddles the body's edge mixes the body's
-    heights with the board's), and below ``below_mm`` (NaN: no bound)."""
+    heights with the board's), and below ``below_mm`` (NaN: no bound; a sparse path's
+    pixels at or above it are left out: the body's bled edge)."""
     best_z, best_f = NAN, NAN
+    sparse = []
     for hk, ok in zip(h, valid):
         if ok.sum() < max(3, 0.5 * ok.size):
+            vals = hk[ok]
+            sparse.append(vals[vals < below_mm] if level and np.isfinite(below_mm) else vals)
             continue
         vals = hk[ok]
         if level:
@@ -785,16 +801,20 @@ def _path_level(h: np.ndarray, valid: np.ndarray, config: InspectConfig, *,
         z = float(z)
         if not np.isfinite(best_z) or z > best_z:
             best_z, best_f = z, float(np.mean(vals > config.bridge_height_mm))
-    return best_z, best_f
+    return best_z, best_f, (np.concatenate(sparse) if sparse else np.empty(0))
 
 
-def _record(joints, a: str, b: str, z: float, f: float) -> None:
-    if not np.isfinite(z):
-        return
+def _record(joints, a: str, b: str, z: float, f: float, sparse: np.ndarray,
+            config: InspectConfig) -> None:
+    """Keep the gap's levels on both joints when higher than what they hold."""
+    zs = (float(np.quantile(sparse, 1.0 - config.bridge_min_fraction))
+          if sparse.size >= MIN_SPARSE_GAP_PIXELS else NAN)
     for jid, other in ((a, b), (b, a)):
         m = joints[jid]
-        if not np.isfinite(m.gap_mm) or z > m.gap_mm:
+        if np.isfinite(z) and not z <= m.gap_mm:
             m.gap_mm, m.gap_neighbour, m.gap_fraction = z, other, f
+        if np.isfinite(zs) and not zs <= m.gap_sparse_mm:
+            m.gap_sparse_mm, m.gap_sparse_n, m.gap_sparse_neighbour = zs, int(sparse.size), other
 
 
 def _measure_gaps(comp, win: _Win, config: InspectConfig, joints: dict[str, JointMeasurement],
@@ -834,14 +854,15 @@ def _measure_gaps(comp, win: _Win, config: InspectConfig, joints: dict[str, Join
                 hug = hug | extra
         for side in (-1.0, 1.0):
             ys = side * (hw + mg + np.arange(0.0, 0.1 + 1e-9, p))
-            z, f = _sample_paths(win, comp, xs, ys, body_grown, config)
-            _record(joints, a.id, b.id, z, f)
+            z, f, sparse = _sample_paths(win, comp, xs, ys, body_grown, config)
             # the band next to the body (nominal edge to body_margin_mm), where a web
             # that wets the body's side stands
             ys = side * (hw + np.arange(0.0, mg - 1e-9, p))
-            z, f = _sample_paths(win, comp, xs, ys, hug, config, level=True,
-                                 below_mm=body_top_mm - LEVEL_PATH_BODY_GAP_MM)
-            _record(joints, a.id, b.id, z, f)
+            z2, f2, sparse2 = _sample_paths(win, comp, xs, ys, hug, config, level=True,
+                                            below_mm=body_top_mm - LEVEL_PATH_BODY_GAP_MM)
+            if np.isfinite(z2) and not z >= z2:
+                z, f = z2, f2
+            _record(joints, a.id, b.id, z, f, np.concatenate([sparse, sparse2]), config)
         return
     groups: dict[tuple[float, float], list] = {}
     for j in comp.joints:
@@ -874,8 +895,7 @@ def _measure_gaps(comp, win: _Win, config: InspectConfig, joints: dict[str, Join
             vs = np.arange(v0, v1 + 1e-9, p / 2)
             pts = (cc[None, None, :] + out_b[None, None, :] * us[:, None, None]
                    + acr_b[None, None, :] * vs[None, :, None])
-            z, f = _sample_board(win, pts, body_grown, config)
-            _record(joints, a.id, b.id, z, f)
+            _record(joints, a.id, b.id, *_sample_board(win, pts, body_grown, config), config)
 
 
 def _sample_paths(win: _Win, comp, xs, ys, exclude, config, **level):

@@ -64,7 +64,11 @@ Joint level
     every report) reads "meniscus (extrapolated, reach N%)". Otherwise ``unreliable``:
     an extrapolation never fails a joint, and a far one (the README's 0402 at 16 %
     reach) never passes it.
-13. ``ok`` otherwise.
+13. ``ok`` otherwise — unless a gap to a neighbouring pad could not be read (its
+    paths each less than half reliable: a specular web is mostly unreliable) while
+    ``bridge_min_fraction`` of the reliable pixels pooled over those paths (at least
+    ``MIN_SPARSE_GAP_PIXELS``) stand above the bridge height: then ``unreliable``,
+    "possible bridge", never a silent pass.
 """
 
 from __future__ import annotations
@@ -192,6 +196,16 @@ def judge_joint(joint, comp, m: JointMeasurement, comp_result: ComponentResult,
             f"({min(component_in_field, m.in_field_fraction):.0%} inside); not judged")
     else:
         v, reason = _joint_rule(joint, comp, m, comp_result, config)
+        bridge = (config.bridge_lead_height_mm if comp.kind == "gullwing"
+                  else config.bridge_height_mm)
+        if v == Verdict.OK and m.gap_sparse_mm > bridge:
+            # Too little of the gap is measured to read a path, but what is measured
+            # stands at solder height: a pass would ignore a possible bridge.
+            v, reason = Verdict.UNRELIABLE, (
+                f"possible bridge to {m.gap_sparse_neighbour}: the gap's paths are too "
+                f"sparsely measured to read, and {config.bridge_min_fraction:.0%} of the "
+                f"{m.gap_sparse_n} pixels measured there stand above {_um(m.gap_sparse_mm)} "
+                f"(> {_um(bridge)}); not judged ({reason})")
     method = m.max_method
     if method == "meniscus" and m.fillet_reach < config.min_fillet_reach:
         method = f"meniscus (extrapolated, reach {m.fillet_reach:.0%})"

@@ -243,10 +243,41 @@ def test_level_paths_take_a_web_not_the_body_edge():
     bled = 0.40 + rng.normal(0, 0.003, n)
     ok = np.ones((1, n), bool)
     for row, want in ((web, True), (straddle, False), (bled, False)):
-        z, _ = _path_level(row[None], ok, cfg, level=True, below_mm=0.45 - 0.1)
+        z, _, _ = _path_level(row[None], ok, cfg, level=True, below_mm=0.45 - 0.1)
         assert math.isfinite(z) is want, (z, want)
-        z_plain, _ = _path_level(row[None], ok, cfg)
+        z_plain, _, _ = _path_level(row[None], ok, cfg)
         assert z_plain > cfg.bridge_height_mm  # the plain level would call each a web
+
+
+@pytest.mark.parametrize("kept", [0.3, 0.1])
+def test_a_web_measured_only_sparsely_never_passes(kept):
+    """A specular web is mostly unreliable under shape from focus: with only 30 % or 10 %
+    of its pixels measured no gap path has enough pixels to be read, and the joints used
+    to pass `ok` on the clear paths beyond it. What is measured in the gap stands at the
+    web's height: the joints are `unreliable` ("possible bridge"), never ok. The same
+    holes punched in a clean board's gaps change nothing."""
+    defects = "R2.1:bridge"
+    params = {"R2.1": {"width_mm": 0.2, "height_mm": 0.25}}
+    surface, labels, board = truth_surface(DEMO, defects, seed=9, params=params)
+    clean, _, _ = truth_surface(DEMO, "", seed=9)
+    web = np.abs(surface.height_mm - clean.height_mm) > 0.02   # where the web stands
+    assert web.sum() > 200
+    rng = np.random.default_rng(4)
+    dead = web & (rng.random(web.shape) >= kept)
+    # the clear paths next to the web keep their pixels: a pass would look justified
+    surface.reliable[dead] = False
+    surface.confidence[dead] = 0.0
+    got = {j.id: j for j in inspect_surface(surface, board, IDEAL).joints}
+    for jid in ("R2.1", "R2.2"):
+        j = got[jid]
+        assert j.verdict in (Verdict.UNRELIABLE, Verdict.BRIDGE), (jid, j.reason)
+        if j.verdict is Verdict.UNRELIABLE:
+            assert "possible bridge" in j.reason, j.reason
+    clean.reliable[dead] = False
+    clean.confidence[dead] = 0.0
+    got = {j.id: j for j in inspect_surface(clean, board, IDEAL).joints}
+    for jid in ("R2.1", "R2.2"):
+        assert got[jid].verdict is Verdict.OK, (jid, got[jid].reason)
 
 
 def test_randomised_boards_no_false_call_and_defects_found():
