@@ -57,6 +57,14 @@ class FocusConfig:
         A pixel whose focus peak is this many times weaker than that of a neighbour
         (within a window and 2 px) peaking at least two frames away is unreliable: its peak is
         the defocused neighbour's blur (a halo). 0 turns the check off. Default 4.
+    blur_order_ratio : float
+        A peak must be the sharpest picture of its neighbourhood: where the peak frame is
+        explained as a blur of the frame before or after it this many times better than
+        the reverse (residual energies over a ``window_px + 6`` square, on frames reduced
+        by 2), the peak is unreliable (a defocused structure's blur or compression
+        texture, not a surface; see :mod:`smdinspect.sff._blur_order`). Judged only where
+        the stack's blur per frame is at least 1 px (finer steps say nothing about the
+        order). 0 turns the check off. Default 2.
     support_steps : float
         A reliable height needs corroboration: one of the pixels a window away (an
         independent window, 16 directions) reliable and within this many frame steps
@@ -145,6 +153,7 @@ class FocusConfig:
     min_confidence: float = 0.5
     edge_jump_steps: float = 3.0
     halo_ratio: float = 4.0
+    blur_order_ratio: float = 2.0
     support_steps: float = 1.5
     coarse_factor: int = 4
     coarse_levels: int = 2
@@ -186,6 +195,12 @@ class FocusConfig:
         if not (isinstance(self.halo_ratio, (int, float)) and math.isfinite(self.halo_ratio)
                 and (self.halo_ratio == 0 or self.halo_ratio >= 1)):
             raise InputError(f"halo_ratio must be 0 (off) or >= 1; got {self.halo_ratio!r}")
+        if not (isinstance(self.blur_order_ratio, (int, float))
+                and not isinstance(self.blur_order_ratio, bool)
+                and math.isfinite(self.blur_order_ratio)
+                and (self.blur_order_ratio == 0 or self.blur_order_ratio >= 1)):
+            raise InputError(f"blur_order_ratio must be 0 (off) or >= 1; "
+                             f"got {self.blur_order_ratio!r}")
         if not (isinstance(self.support_steps, (int, float)) and math.isfinite(self.support_steps)
                 and self.support_steps >= 0):
             raise InputError(f"support_steps must be >= 0 (0: off); got {self.support_steps!r}")
