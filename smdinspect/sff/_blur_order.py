@@ -32,8 +32,8 @@ Measured (2026-12-02; pcb-oblique, the barcode's isolated reliable heights stand
 pixels are; metal-bore 3.4 % of the reliable pixels (the bore's outer rim, a depth
 edge); rendered demo boards (telecentric and ordinary lenses, steps 1–2.5 depths of
 field, normal and high noise) 0.2–0.8 % of the heights within 0.5 Δd of the truth.
-Streaming: three full-size planes and the reduced grey of the previous frame with its
-blurs, all allocated once; about 50 ms per 3-Mpixel frame.
+Streaming: three full-size 8-bit planes and the reduced grey of the previous frame with
+its blurs, all allocated once; about 50 ms per 3-Mpixel frame.
 """
 
 from __future__ import annotations
@@ -69,15 +69,16 @@ class BlurOrder:
         self.prev: np.ndarray | None = None
         # Every plane is allocated once: first touches of fresh memory (page faults) cost
         # more than the arithmetic on a 3-Mpixel frame.
-        self._blurs = [[np.empty(small, np.float32) for _ in self.sigmas] for _ in range(2)]
+        self._blurs = [np.empty(small, np.float32) for _ in self.sigmas]   # the last frame's
         self._d, self._r = np.empty(small, np.float32), np.empty(small, np.float32)
         self._a, self._c = np.empty(small, np.float32), np.empty(small, np.float32)
-        self._up = np.empty(shape, np.float32)
+        self._flag = np.empty(small, np.uint8)
+        self._up = np.empty(shape, np.uint8)
         self._mask = np.empty(shape, bool)
-        # (a + ν)/(c + ν) against the frame before the best one, and its reverse against
-        # the frame after: small = the best frame is a blur of that neighbour
-        self.before = np.full(shape, np.inf, np.float32)
-        self.after = np.full(shape, np.inf, np.float32)
+        # 255 where the best frame is a blur of the frame before it / after it (by
+        # ``ratio``), 0 elsewhere and while the frame after is not seen yet
+        self.before = np.zeros(shape, np.uint8)
+        self.after = np.zeros(shape, np.uint8)
 
     @staticmethod
     def reduce(image: np.ndarray) -> np.ndarray:
@@ -109,33 +110,37 @@ class BlurOrder:
                best_idx: np.ndarray) -> None:
         """Take frame ``n``'s reduced grey; ``better`` and ``best_idx`` are the peak
         tracker's new-best mask and best frames after its update for frame ``n``."""
-        blurs = self._blurs[n % 2]
-        for s, b in zip(self.sigmas, blurs):
-            cv2.GaussianBlur(reduced, (0, 0), s, dst=b, borderType=cv2.BORDER_REFLECT)
         h, w = self.shape
         mask = better.view(np.uint8)
-        if self.prev is not None and min(reduced.shape) >= self.box:
-            a, c = self._a, self._c
-            self._residual(reduced, self._blurs[(n - 1) % 2], a)   # n as a blur of n - 1
-            self._residual(self.prev, blurs, c)                   # n - 1 as a blur of n
+        judged = self.prev is not None and min(reduced.shape) >= self.box
+        a, c = self._a, self._c
+        if judged:
+            self._residual(reduced, self._blurs, a)   # n as a blur of n - 1 (its blurs)
+        for s, b in zip(self.sigmas, self._blurs):   # now frame n's
+            cv2.GaussianBlur(reduced, (0, 0), s, dst=b, borderType=cv2.BORDER_REFLECT)
+        if judged:
+            self._residual(self.prev, self._blurs, c)  # n - 1 as a blur of n
             low = cv2.min(a, c, dst=self._d)
             nu = max(float(np.percentile(low[::3, ::3], 10)), 1e-6)
             cv2.add(a, nu, dst=a)
             cv2.add(c, nu, dst=c)
-            # pixels whose best is still frame n - 1: judged against frame n
-            cv2.divide(c, a, dst=self._r)
-            cv2.resize(self._r, (w, h), dst=self._up, interpolation=cv2.INTER_NEAREST)
+            # pixels whose best is still frame n - 1, judged against frame n: it is a
+            # blur of frame n when (c + ν)·ratio < (a + ν)
+            cv2.multiply(c, self.ratio, dst=self._r)
+            cv2.compare(self._r, a, cv2.CMP_LT, dst=self._flag)
+            cv2.resize(self._flag, (w, h), dst=self._up, interpolation=cv2.INTER_NEAREST)
             still = np.equal(best_idx, n - 1, out=self._mask).view(np.uint8)
             cv2.copyTo(self._up, still, self.after)
-            # new bests at frame n: judged against frame n - 1 (and frame n + 1 next)
-            cv2.divide(a, c, dst=self._r)
-            cv2.resize(self._r, (w, h), dst=self._up, interpolation=cv2.INTER_NEAREST)
+            # new bests at frame n, judged against frame n - 1 (and frame n + 1 next)
+            cv2.multiply(a, self.ratio, dst=self._r)
+            cv2.compare(self._r, c, cv2.CMP_LT, dst=self._flag)
+            cv2.resize(self._flag, (w, h), dst=self._up, interpolation=cv2.INTER_NEAREST)
             cv2.copyTo(self._up, mask, self.before)
         else:
-            cv2.add(self.before, np.inf, dst=self.before, mask=mask)   # x + inf = inf
-        cv2.add(self.after, np.inf, dst=self.after, mask=mask)
+            cv2.subtract(self.before, 255, dst=self.before, mask=mask)   # saturates to 0
+        cv2.subtract(self.after, 255, dst=self.after, mask=mask)
         self.prev = reduced
 
     def suspect(self) -> np.ndarray:
         """(H, W) bool: peaks whose frame is a blur of a neighbouring frame."""
-        return np.minimum(self.before, self.after) * np.float32(self.ratio) < 1.0
+        return cv2.bitwise_or(self.before, self.after) > 0
