@@ -56,7 +56,8 @@ Joint level
     ``min_fillet_reach`` of its height, the fillet's top was not measured and the max is
     an extrapolation. Such a joint is ``excess`` when the solder area's own percentile
     is already above the band (seen directly), ``missing`` when neither that percentile
-    nor the extrapolation reaches ``missing_height_mm`` (no colour cue), ``ok`` when
+    nor the extrapolation reaches ``missing_height_mm`` and the fitted meniscus does not
+    rise above that percentile (a flat pad; no colour cue), ``ok`` when
     that percentile — a lower bound of the fillet height, which rises towards the
     body — already reaches the band's minimum, or when the reach is at least
     :data:`MIN_PASS_REACH` × ``min_fillet_reach`` and the extrapolation lies in the
@@ -281,12 +282,15 @@ def _joint_rule(joint, comp, m: JointMeasurement, comp_result: ComponentResult,
             return Verdict.EXCESS, (f"solder seen at {_um(seen)} > max {_um(joint.max_height_mm)} "
                                     f"(meniscus extrapolated to {_um(h)}, reach "
                                     f"{m.fillet_reach:.0%})")
-        if max(seen, h) < config.missing_height_mm and not math.isfinite(m.bare_fraction):
-            # Neither the solder seen nor its extrapolation (seen / reach, the generous
-            # reading) reaches the missing height: no solder.
-            return Verdict.MISSING, (f"no solder: the solder area reaches {_um(seen)} and its "
-                                     f"meniscus extrapolates to {_um(h)} (reach "
-                                     f"{m.fillet_reach:.0%}), both < "
+        if max(seen, h) < config.missing_height_mm and not h > seen \
+                and not math.isfinite(m.bare_fraction):
+            # The pad is flat where it is measured and the meniscus fitted to it does not
+            # rise above what is seen: no fillet, no solder. A fit that rises towards the
+            # termination is a fillet whose top is hidden (an extrapolation then reads
+            # low, not high: an 0402's at this reach 40-60 % low), never "missing".
+            return Verdict.MISSING, (f"no solder: the solder area reaches {_um(seen)} and the "
+                                     f"meniscus fitted to it does not rise above it "
+                                     f"({_um(h)}, reach {m.fillet_reach:.0%}); both < "
                                      f"{_um(config.missing_height_mm)}")
         if seen >= joint.min_height_mm and h <= joint.max_height_mm:
             return Verdict.OK, (f"max solder height {_um(h)}{pm} extrapolated (reach "

@@ -100,6 +100,19 @@ def test_without_colour_a_flat_pad_is_missing_and_a_low_fillet_insufficient(c2):
     assert r.verdict is Verdict.INSUFFICIENT
 
 
+def test_an_extrapolated_meniscus_that_rises_is_never_missing(c2):
+    """Only the toe of the fillet measured (reach 25 %, seen 14 µm): a meniscus fitted
+    to it that rises towards the termination (29 µm) is a fillet whose top is hidden
+    (a good 0402 on a tuning board), not a bare pad: `unreliable`. A fit that stays
+    flat or falls is a bare pad: `missing`."""
+    r = _judge(c2, max_mm=0.029, max_method="meniscus", fillet_reach=0.25, observed_mm=0.014)
+    assert r.verdict is Verdict.UNRELIABLE and "fillet top not measured" in r.reason
+    for fitted in (0.014, 0.005, -0.17):
+        r = _judge(c2, max_mm=fitted, max_method="meniscus", fillet_reach=0.25,
+                   observed_mm=0.014)
+        assert r.verdict is Verdict.MISSING and "does not rise" in r.reason, (fitted, r.reason)
+
+
 def test_gap_limit_is_lower_between_gull_wing_feet(c2):
     """A raised path between two gull-wing feet is a bridge from bridge_lead_height_mm
     (far from any body edge, the noise is a few µm); along a chip's side, whose gap the
