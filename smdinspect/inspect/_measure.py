@@ -63,9 +63,10 @@ Gaps
     when ``bridge_min_fraction`` of its reliable pixels stand higher; ``gap_mm`` is the
     highest covered z over the paths. A path with fewer than half its pixels reliable
     has no level of its own (a specular web is often mostly unreliable); the reliable
-    pixels of all such paths of a gap are pooled instead, and their covered level is
-    ``gap_sparse_mm`` (with at least :data:`MIN_SPARSE_GAP_PIXELS` of them). Along a chip's sides the band between the body's
-    nominal edge and ``body_margin_mm`` is read too (a web that wets the body lies mostly
+    pixels of all such paths of a gap (of one side of a chip) are pooled instead, and
+    their covered level is ``gap_sparse_mm`` (with at least
+    :data:`MIN_SPARSE_GAP_PIXELS` of them). Along a chip's sides the band between the
+    body's nominal edge and ``body_margin_mm`` is read too (a web that wets the body lies mostly
     there), with the measured body left out; a path there counts only where it is level
     (its median within ``bridge_height_mm`` of its covered z: a path straddling the
     body's edge mixes body and board heights) and stands at least
@@ -786,11 +787,10 @@ def _path_level(h: np.ndarray, valid: np.ndarray, config: InspectConfig, *,
     best_z, best_f = NAN, NAN
     sparse = []
     for hk, ok in zip(h, valid):
-        if ok.sum() < max(3, 0.5 * ok.size):
-            vals = hk[ok]
+        vals = hk[ok]
+        if vals.size < max(3, 0.5 * ok.size):
             sparse.append(vals[vals < below_mm] if level and np.isfinite(below_mm) else vals)
             continue
-        vals = hk[ok]
         if level:
             z, mid, top = np.quantile(vals, [1.0 - config.bridge_min_fraction, 0.5,
                                              config.bridge_min_fraction])
@@ -855,14 +855,13 @@ def _measure_gaps(comp, win: _Win, config: InspectConfig, joints: dict[str, Join
         for side in (-1.0, 1.0):
             ys = side * (hw + mg + np.arange(0.0, 0.1 + 1e-9, p))
             z, f, sparse = _sample_paths(win, comp, xs, ys, body_grown, config)
+            _record(joints, a.id, b.id, z, f, np.empty(0), config)
             # the band next to the body (nominal edge to body_margin_mm), where a web
-            # that wets the body's side stands
+            # that wets the body's side stands; the side's sparse paths pooled
             ys = side * (hw + np.arange(0.0, mg - 1e-9, p))
-            z2, f2, sparse2 = _sample_paths(win, comp, xs, ys, hug, config, level=True,
-                                            below_mm=body_top_mm - LEVEL_PATH_BODY_GAP_MM)
-            if np.isfinite(z2) and not z >= z2:
-                z, f = z2, f2
-            _record(joints, a.id, b.id, z, f, np.concatenate([sparse, sparse2]), config)
+            z, f, band = _sample_paths(win, comp, xs, ys, hug, config, level=True,
+                                       below_mm=body_top_mm - LEVEL_PATH_BODY_GAP_MM)
+            _record(joints, a.id, b.id, z, f, np.concatenate([sparse, band]), config)
         return
     groups: dict[tuple[float, float], list] = {}
     for j in comp.joints:
