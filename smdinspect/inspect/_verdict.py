@@ -197,8 +197,7 @@ def judge_joint(joint, comp, m: JointMeasurement, comp_result: ComponentResult,
             f"({min(component_in_field, m.in_field_fraction):.0%} inside); not judged")
     else:
         v, reason = _joint_rule(joint, comp, m, comp_result, config)
-        bridge = (config.bridge_lead_height_mm if comp.kind == "gullwing"
-                  else config.bridge_height_mm)
+        bridge = _bridge_limit(comp, config)
         if v == Verdict.OK and m.gap_sparse_mm > bridge:
             # Too little of the gap is measured to read a path, but what is measured
             # stands at solder height: a pass would ignore a possible bridge.
@@ -224,6 +223,11 @@ def judge_joint(joint, comp, m: JointMeasurement, comp_result: ComponentResult,
         max_method=method, bare_fraction=m.bare_fraction, foot_height_mm=m.foot_mm,
         side_height_mm=m.side_mm, cap_excess_mm=m.cap_mm, fillet_reach=m.fillet_reach,
         polygon_px=m.polygon_px)
+
+
+def _bridge_limit(comp, config: InspectConfig) -> float:
+    """The gap height above which solder bridges (rule 8)."""
+    return config.bridge_lead_height_mm if comp.kind == "gullwing" else config.bridge_height_mm
 
 
 def _joint_rule(joint, comp, m: JointMeasurement, comp_result: ComponentResult,
@@ -253,7 +257,7 @@ def _joint_rule(joint, comp, m: JointMeasurement, comp_result: ComponentResult,
                                  f"max height {_um(m.max_mm)}, {m.reliable_fraction:.0%} reliable")
     # A bridge is read on the gap's own paths (each must be covered), not on the solder
     # area: it is judged however little of the solder area is reliable.
-    bridge = config.bridge_lead_height_mm if comp.kind == "gullwing" else config.bridge_height_mm
+    bridge = _bridge_limit(comp, config)
     if math.isfinite(m.gap_mm) and m.gap_mm > bridge:
         return Verdict.BRIDGE, (f"solder across the gap to {m.gap_neighbour}: "
                                 f"{config.bridge_min_fraction:.0%} of a path stands above "
