@@ -66,8 +66,8 @@ Gaps
     pixels of all such paths of a gap (of one side of a chip) are pooled instead, and
     their covered level is ``gap_sparse_mm`` (with at least
     :data:`MIN_SPARSE_GAP_PIXELS` of them). Along a chip's sides the band between the
-    body's nominal edge and ``body_margin_mm`` is read too (a web that wets the body lies mostly
-    there), with the measured body left out; a path there counts only where it is level
+    body's nominal edge and ``body_margin_mm`` is read too (a web that wets the body
+    lies mostly there), with the measured body left out; a path there counts only where it is level
     (its median within ``bridge_height_mm`` of its covered z: a path straddling the
     body's edge mixes body and board heights) and stands at least
     :data:`LEVEL_PATH_BODY_GAP_MM` below the measured body top (the body's bled edge).

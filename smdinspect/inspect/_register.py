@@ -485,10 +485,10 @@ def register_board(
     meta["reference_coverage"] = coverage
     # Most parts found where the placement puts them (RMS within the consensus
     # distance: shape-from-focus body centroids carry 10-60 µm of bias, the most
-    # through an ordinary lens) and the
-    # measured raised points lie on the reference: the board is located even when a
-    # large part is missing (it takes most of the reference's raised area, so the
-    # correlation and the reference coverage drop; the joints then say what is missing).
+    # through an ordinary lens) and the measured raised points lie on the reference:
+    # the board is located even when a large part is missing (it takes most of the
+    # reference's raised area, so the correlation and the reference coverage drop; the
+    # joints then say what is missing).
     feat = meta.get("features") or {}
     used_bodies = [u for u in feat.get("used", []) if u.startswith("body:")]
     used_fids = [u for u in feat.get("used", []) if u.startswith("fiducial:")]

@@ -155,8 +155,8 @@ def reconstruct(
     def load(i: int):
         moments = None  # stays None when the frame fails: the next frames must not wait
         try:
-            image, focus, small, own, moments = _load(i)
-            return image, focus, small, own
+            image, focus, small, own, reduced, moments = _load(i)
+            return image, focus, small, own, reduced
         finally:
             if moment_sums is not None:
                 moment_sums.add(i, moments)
@@ -225,9 +225,8 @@ def reconstruct(
             image = alignment.warp(image, i)
         small = [_CoarseLevel.reduce(focus, f)  # in the worker
                  for f in _coarse_factors(config, focus.shape)]
-        if config.blur_order_ratio > 0:
-            small.append(BlurOrder.reduce(image))  # the last: the blur-order check's
-        return image, focus, small, own, (None if mx is None else (mx, my))
+        reduced = BlurOrder.reduce(image) if config.blur_order_ratio > 0 else None
+        return image, focus, small, own, reduced, (None if mx is None else (mx, my))
 
     tracker: PeakTracker | None = None
     coarse: list[_CoarseLevel] = []
@@ -242,7 +241,7 @@ def reconstruct(
             while next_i < n and len(pending) < depth:
                 pending.append(pool.submit(load, next_i))
                 next_i += 1
-            image, focus, small, own = pending.popleft().result()
+            image, focus, small, own, reduced = pending.popleft().result()
             if ref_shape is None:
                 ref_shape = image.shape
                 if min(image.shape[:2]) < config.window_px:
@@ -261,13 +260,13 @@ def reconstruct(
                 raise _mismatch(stack.frames[i].path, image.shape, first, ref_shape)
             better = tracker.update(i, focus, own=own)
             if order is not None:
-                order.update(i, small.pop(), better, tracker.best_idx)
+                order.update(i, reduced, better, tracker.best_idx)
             for level, plane in zip(coarse, small):
                 level.tracker.update(i, plane)
             cv2.copyTo(image, better.view(np.uint8), aif)
             if progress is not None:
                 progress(i + 1, n)
-        del image, focus, small, own, better  # the last frame's planes
+        del image, focus, small, own, reduced, better  # the last frame's planes
     t_stream = time.perf_counter() - t0
     release_free_memory()  # the workers' freed frames, before the fit allocates afresh
     centroid = None
@@ -474,7 +473,8 @@ def _level(tracker: PeakTracker, z_mm: np.ndarray, config: FocusConfig, *, windo
     ``own_px`` window's focus) and, with ``order``, the peaks on a frame that is a blur
     of its neighbour's (:class:`BlurOrder`; judged only where the blur per frame κ
     reaches the smallest blur the check tries; ``order_out`` gets the figures). With
-    ``curve_out`` (a dict, filled with the choice) the heights use :attr:`FocusConfig.fit_power` (:func:`select_curve_power` for "auto").
+    ``curve_out`` (a dict, filled with the choice) the heights use
+    :attr:`FocusConfig.fit_power` (:func:`select_curve_power` for "auto").
     """
     tracker.finish()
     power = FocusOperator(config.operator).curve_power
