@@ -149,6 +149,7 @@ def inspect_stack(
     progress: Callable[[int, int], None] | None = None,
     html: bool = True,
     source: str | None = None,
+    calibration: str | os.PathLike | None = None,
 ):
     """Reconstruct, locate, measure, judge and report one board.
 
@@ -173,6 +174,10 @@ def inspect_stack(
         Write ``report.html`` too.
     source : str, optional
         What the measurement came from, for the reports (default: the stack's path).
+    calibration : path, optional
+        A rig calibration file (``smdinspect calibrate``): its focal-plane correction and
+        z scale are applied to the surface before it is written and judged. Refused for
+        a reconstruction that was corrected already.
 
     Returns
     -------
@@ -214,10 +219,23 @@ def inspect_stack(
             stack = FocalStack.open(stack)
     else:
         raise InputError(f"stack must be a FocalStack, a Surface or a path; got {type(stack).__name__}")
+    if surface is not None and calibration is not None:
+        done = [k for k in ("focal_plane_calibration", "z_scale_calibration") if k in surface.meta]
+        if done:
+            raise InputError(f"{source} was already corrected by a calibration "
+                             f"({', '.join(done)} in its summary.json): inspect it without "
+                             "--calibration")
     out.mkdir(parents=True, exist_ok=True)
     if surface is None:
+        from .calibrate import apply_calibration_file
+
         surface = reconstruct(stack, focus_config or inspection_focus_config(), progress=progress)
+        surface = apply_calibration_file(surface, calibration)
         _write_reconstruction(surface, out, keep_unreliable)
+    elif calibration is not None:
+        from .calibrate import apply_calibration_file
+
+        surface = apply_calibration_file(surface, calibration)
     # The 3D view the reconstruction just rendered goes into report.html too.
     view3d = out / "view3d.png" if isinstance(stack, FocalStack) else None
     if surface.pixel_size_mm:

@@ -1,4 +1,4 @@
-"""``smdinspect calibrate pixel-size | flat``: rig calibration into a calibration file."""
+"""``smdinspect calibrate pixel-size | flat | z-scale``: rig calibration into a calibration file."""
 
 from __future__ import annotations
 
@@ -40,7 +40,8 @@ def register(sub: argparse._SubParsersAction) -> None:
     from ..calibrate import TargetKind
     from .reconstruct import add_stack_arguments
 
-    p = sub.add_parser("calibrate", help="rig calibration: pixel size, focal-plane tilt/curvature",
+    p = sub.add_parser("calibrate", help="rig calibration: pixel size, focal-plane tilt/curvature, "
+                                         "z scale",
                        description="Calibrate a rig; results go to a calibration file "
                                    "(rig.cal.json) that reconstruct --calibration applies.")
     csub = p.add_subparsers(dest="calibrate_command", metavar="ACTION", required=True)
@@ -74,6 +75,26 @@ def register(sub: argparse._SubParsersAction) -> None:
                     help="polynomial degree: 1 tilt only, 2 tilt + curvature (default), up to 4")
     fl.set_defaults(func=run_flat)
 
+    zs = csub.add_parser("z-scale", help="z scale and direction from a step target of known height",
+                         description="Reconstruct a sweep of a step of known height (a gauge "
+                                     "block or shim on a flat base, both surfaces textured), "
+                                     "read the step as two parallel planes and store the z "
+                                     "scale that makes it read true; a step that reads "
+                                     "downwards means z runs the wrong way (an error). The "
+                                     "calibration file's focal-plane correction, if any, is "
+                                     "applied before the step is read.")
+    add_stack_arguments(zs)
+    zs.add_argument("--step-height-mm", type=float, required=True,
+                    help="the step's known height (mm), e.g. a gauge block's")
+    zs.add_argument("--top-at", default=None, metavar="X,Y",
+                    help="a pixel (column,row) on the upper surface (default: the field's "
+                         "centre is on it)")
+    zs.add_argument("--rig", type=Path, default=None,
+                    help="rig file (TOML): pixel size when the stack has none")
+    zs.add_argument("--out", type=Path, default=None,
+                    help="calibration file to write or update (default RIG.cal.json)")
+    zs.set_defaults(func=run_z_scale)
+
 
 def run_pixel_size(args: argparse.Namespace) -> int:
     from ..calibrate import pixel_size_from_image, set_rig_pixel_size, write_calibration
@@ -103,21 +124,27 @@ def run_pixel_size(args: argparse.Namespace) -> int:
     return 0
 
 
-def run_flat(args: argparse.Namespace) -> int:
-    from ..calibrate import apply_calibration, calibrate_flat, write_calibration
+def _reconstruct_target(args: argparse.Namespace):
+    """The calibration sweep's reconstruction (the rig's pixel size when it has none)."""
     from ..cli import progress_callback
     from ..sff import reconstruct
     from ..stack import _replace_pixel, open_stack
     from .reconstruct import focus_config_from
 
-    out = _default_out(args)
     stack = open_stack(args.stack, step_mm=args.step_mm, pixel_size_mm=args.pixel_size_mm,
                        z_from_name=args.z_from_name)
     if stack.pixel_size_mm is None:
         pixel = _rig_pixel_size(args.rig)
         if pixel is not None:  # the rig's, for a stack that records none
             stack = _replace_pixel(stack, pixel)
-    surface = reconstruct(stack, focus_config_from(args), progress=progress_callback(args, "focus"))
+    return reconstruct(stack, focus_config_from(args), progress=progress_callback(args, "focus"))
+
+
+def run_flat(args: argparse.Namespace) -> int:
+    from ..calibrate import apply_calibration, calibrate_flat, write_calibration
+
+    out = _default_out(args)
+    surface = _reconstruct_target(args)
     cal = calibrate_flat(surface, degree=args.degree)
     print(cal.summary())
     check = calibrate_flat(apply_calibration(surface, cal), degree=args.degree)
@@ -125,5 +152,34 @@ def run_flat(args: argparse.Namespace) -> int:
           + (f"{check.tilt_deg:.4f}°" if check.tilt_deg is not None else "n/a")
           + f", sag {check.curvature_sag_mm * 1000:.2f} µm")
     write_calibration(out, focal_plane=cal)
+    print(f"calibration: {out} (apply with: smdinspect reconstruct STACK --calibration {out})")
+    return 0
+
+
+def run_z_scale(args: argparse.Namespace) -> int:
+    from ..calibrate import (apply_calibration, apply_z_scale, calibrate_z_scale,
+                             read_calibration, write_calibration)
+    from ..errors import InputError
+
+    out = _default_out(args)
+    top_at = None
+    if args.top_at is not None:
+        try:
+            x, y = (float(t) for t in args.top_at.split(","))
+        except ValueError:
+            raise InputError(f"--top-at must be X,Y (pixel column,row); got {args.top_at!r}") \
+                from None
+        top_at = (x, y)
+    focal = read_calibration(out)["focal_plane"] if out.is_file() else None
+    surface = _reconstruct_target(args)
+    if focal is not None:  # measured in nominal z, like this sweep
+        surface = apply_calibration(surface, focal)
+        print(f"focal-plane correction of {out} applied before reading the step")
+    cal = calibrate_z_scale(surface, step_height_mm=args.step_height_mm, top_at=top_at)
+    print(cal.summary())
+    check = calibrate_z_scale(apply_z_scale(surface, cal), step_height_mm=args.step_height_mm,
+                              top_at=top_at)
+    print(f"after the correction the step reads {check.measured_step_mm * 1000:.1f} µm")
+    write_calibration(out, z_scale=cal)
     print(f"calibration: {out} (apply with: smdinspect reconstruct STACK --calibration {out})")
     return 0

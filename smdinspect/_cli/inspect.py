@@ -35,6 +35,9 @@ def register(sub: argparse._SubParsersAction) -> None:
                    help="joints with a smaller fraction of reliable pixels are 'unreliable' "
                         f"(default {InspectConfig.min_reliable_fraction})")
     p.add_argument("--no-html", action="store_true", help="skip report.html")
+    p.add_argument("--calibration", type=Path, default=None, metavar="CAL_JSON",
+                   help="rig calibration (smdinspect calibrate): focal-plane correction and "
+                        "z scale applied before the joints are measured")
     # Inspection focuses with its own, smaller window by default (steep, narrow fillets).
     p.set_defaults(func=run, window_px=inspection_focus_config().window_px)
 
@@ -71,6 +74,10 @@ def run(args: argparse.Namespace) -> int:
     from .reconstruct import focus_config_from
 
     board = load_any_board(args.board)  # a board JSON, or a CAD file imported on the fly
+    if args.calibration is not None:
+        from ..calibrate import read_calibration
+
+        read_calibration(args.calibration)  # a bad file fails now, not after the sweep
     config = inspect_config_from(args)
     carry: tuple[str, ...] = ()
     if len(args.stack) == 1 and is_reconstruction(args.stack[0]):
@@ -96,7 +103,8 @@ def run(args: argparse.Namespace) -> int:
             result = inspect_stack(stack, board, tmp, focus_config=focus,
                                    inspect_config=config, keep_unreliable=args.keep_unreliable,
                                    progress=progress_callback(args, "focus"),
-                                   html=not args.no_html, source=source)
+                                   html=not args.no_html, source=source,
+                                   calibration=args.calibration)
         except BoardNotLocatedError as exc:
             not_located = exc  # its report.json (and the reconstruction) are this run's outputs
     if not_located is not None:

@@ -94,7 +94,8 @@ def register(sub: argparse._SubParsersAction) -> None:
                         "cloud.ply, mesh.ply, mesh.stl; summary.json is always written")
     p.add_argument("--calibration", type=Path, default=None, metavar="CAL_JSON",
                    help="rig calibration (smdinspect calibrate): subtract its focal-plane "
-                        "tilt/curvature")
+                        "tilt/curvature, scale z, and take its pixel size when the stack "
+                        "has none")
     p.set_defaults(func=run)
 
 
@@ -102,7 +103,7 @@ def run(args: argparse.Namespace) -> int:
     import numpy as np
 
     from .. import _atomic
-    from ..calibrate import apply_calibration_file
+    from ..calibrate import apply_calibration_file, read_calibration
     from ..cli import progress_callback
     from ..sff import reconstruct, write_reconstruction
     from ..sff._export import RECONSTRUCTION_OUTPUTS
@@ -116,6 +117,8 @@ def run(args: argparse.Namespace) -> int:
     if unknown:
         raise InputError(f"--outputs: unknown {', '.join(unknown)}; choose from "
                          f"{', '.join(RECONSTRUCTION_OUTPUTS)} (or all)")
+    if args.calibration is not None:
+        read_calibration(args.calibration)  # a bad file fails now, not after the sweep
     stack = open_stack(args.stack, step_mm=args.step_mm, pixel_size_mm=args.pixel_size_mm,
                        z_from_name=args.z_from_name)
     auto = resolve_auto_operator(args, stack)  # --operator auto: the texture study's pick

@@ -1,14 +1,16 @@
 """Rig calibration: pixel size and lens distortion from a target image, focal-plane tilt
-and field curvature from a flat-target sweep, and the calibration file that carries them.
+and field curvature from a flat-target sweep, z scale and direction from a step target of
+known height, and the calibration file that carries them.
 
 Calibration file (``rig.cal.json``)::
 
     {"schema": "smdinspect-calibration", "version": 1,
      "pixel_size": {...PixelSizeResult fields...},        # optional
-     "focal_plane": {...FocalPlaneCalibration fields...}}  # optional
+     "focal_plane": {...FocalPlaneCalibration fields...},  # optional
+     "z_scale": {...ZScaleCalibration fields...}}          # optional
 
 ``smdinspect reconstruct --calibration rig.cal.json`` subtracts the focal-plane
-correction and takes the pixel size when the stack has none.
+correction, then scales z, and takes the pixel size when the stack has none.
 """
 
 from __future__ import annotations
@@ -21,15 +23,19 @@ from typing import Any
 from ..errors import InputError
 from ._flat import FocalPlaneCalibration, apply_calibration, calibrate_flat
 from ._pixel import PixelSizeResult, TargetKind, detect_target, pixel_size_from_image
+from ._zscale import ZScaleCalibration, apply_z_scale, calibrate_z_scale
 
 __all__ = [
     "CALIBRATION_SCHEMA",
     "FocalPlaneCalibration",
     "PixelSizeResult",
     "TargetKind",
+    "ZScaleCalibration",
     "apply_calibration",
     "apply_calibration_file",
+    "apply_z_scale",
     "calibrate_flat",
+    "calibrate_z_scale",
     "detect_target",
     "pixel_size_from_image",
     "read_calibration",
@@ -47,7 +53,7 @@ def read_calibration(path: str | os.PathLike) -> dict[str, Any]:
     -------
     dict
         ``{"pixel_size_mm": float or None, "focal_plane": FocalPlaneCalibration or None,
-        "raw": the parsed JSON}``.
+        "z_scale": ZScaleCalibration or None, "raw": the parsed JSON}``.
     """
     p = Path(path)
     if not p.is_file():
@@ -70,11 +76,16 @@ def read_calibration(path: str | os.PathLike) -> dict[str, Any]:
             raise InputError(f"{p}: pixel_size.pixel_size_mm must be > 0; got {pixel!r}")
     fp = doc.get("focal_plane")
     focal = FocalPlaneCalibration.from_dict(fp, source=str(p)) if fp is not None else None
-    return {"pixel_size_mm": pixel, "focal_plane": focal, "raw": doc}
+    zs = doc.get("z_scale")
+    if zs is not None and not isinstance(zs, dict):
+        raise InputError(f"{p}: z_scale must be an object")
+    zscale = ZScaleCalibration.from_dict(zs, source=str(p)) if zs is not None else None
+    return {"pixel_size_mm": pixel, "focal_plane": focal, "z_scale": zscale, "raw": doc}
 
 
 def write_calibration(path: str | os.PathLike, *, pixel_size: PixelSizeResult | None = None,
-                      focal_plane: FocalPlaneCalibration | None = None) -> Path:
+                      focal_plane: FocalPlaneCalibration | None = None,
+                      z_scale: ZScaleCalibration | None = None) -> Path:
     """Write (or update) a calibration file atomically; other sections are kept."""
     from .._atomic import write_json
 
@@ -86,6 +97,8 @@ def write_calibration(path: str | os.PathLike, *, pixel_size: PixelSizeResult | 
         doc["pixel_size"] = pixel_size.to_dict()
     if focal_plane is not None:
         doc["focal_plane"] = focal_plane.to_dict()
+    if z_scale is not None:
+        doc["z_scale"] = z_scale.to_dict()
     return write_json(p, doc)
 
 
@@ -131,8 +144,9 @@ def set_rig_pixel_size(rig_path: str | os.PathLike, pixel_size_mm: float) -> Pat
 def apply_calibration_file(surface, path: str | os.PathLike | None):
     """``surface`` corrected by the calibration file at ``path`` (unchanged for ``None``).
 
-    The focal-plane correction is subtracted from the heights; the file's pixel size is
-    used when the surface has none (a pixel size the stack states is kept).
+    The focal-plane correction is subtracted from the heights (in the sweep's nominal z,
+    which it was measured in), then z is scaled; the file's pixel size is used when the
+    surface has none (a pixel size the stack states is kept).
     """
     from dataclasses import replace
 
@@ -141,6 +155,8 @@ def apply_calibration_file(surface, path: str | os.PathLike | None):
     cal = read_calibration(path)
     if cal["focal_plane"] is not None:
         surface = apply_calibration(surface, cal["focal_plane"])
+    if cal["z_scale"] is not None:
+        surface = apply_z_scale(surface, cal["z_scale"])
     if surface.pixel_size_mm is None and cal["pixel_size_mm"] is not None:
         surface = replace(surface, pixel_size_mm=float(cal["pixel_size_mm"]))
     return surface

@@ -169,3 +169,30 @@ def test_cli_inspection_commands_use_the_inspection_focus_settings(command, tmp_
                  "--align"])
     assert code not in (0, 1) and seen  # stopped inside the fake, after the config was made
     assert seen[0] == dataclasses.replace(pipeline.inspection_focus_config(), align=True)
+
+
+def test_inspection_applies_a_rig_calibration_once(run, tmp_path):
+    """``inspect --calibration``: a z scale from a step target multiplies every joint's
+    height above its board; a reconstruction already corrected is not corrected twice."""
+    import dataclasses
+
+    from smdinspect.calibrate import ZScaleCalibration, write_calibration
+    from smdinspect.errors import InputError
+
+    result, _, root = run
+    cal = write_calibration(tmp_path / "rig.cal.json", z_scale=ZScaleCalibration(
+        scale=1.03, known_step_mm=0.5, measured_step_mm=0.5 / 1.03, scale_sigma=0.001,
+        step_mm=STEP_MM, top_share=0.4, residual_rms_mm=0.002, coverage=0.9))
+    assert main(["-q", "inspect", str(root / "out"), "--board", DEMO, "--out",
+                 str(tmp_path / "o"), "--calibration", str(cal), "--no-html"]) in (0, 1)
+    doc = json.loads((tmp_path / "o" / "report.json").read_text())
+    before = {j.id: j.measured_max_mm for j in result.joints}
+    ratios = [j["measured"]["max_height_mm"] / before[j["id"]] for j in doc["joints"]
+              if j["measured"]["max_height_mm"] and np.isfinite(before[j["id"]])
+              and before[j["id"]] > 0.1]
+    assert len(ratios) >= 10
+    assert np.median(ratios) == pytest.approx(1.03, abs=0.008)
+    done = dataclasses.replace(load_reconstruction(root / "out"),
+                               meta={"z_scale_calibration": {"scale": 1.03}})
+    with pytest.raises(InputError, match="already corrected"):
+        inspect_stack(done, DEMO, tmp_path / "o2", calibration=cal)
