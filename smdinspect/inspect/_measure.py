@@ -142,6 +142,7 @@ class JointMeasurement:
     in_field_fraction: float = 1.0  # share of the pad inside the measured field
     fillet_reach: float = NAN       # chip meniscus: fraction of F the fitted pixels reach
     observed_mm: float = NAN        # the solder area's percentile (what the pixels show)
+    bulge_mm: float = NAN           # chip, bulging fillet: the concave fit's height (overshoots)
     bare_fraction: float = NAN      # visible pad looking like bare finish (colour)
     gap_mm: float = NAN             # highest covered level towards a neighbour
     gap_neighbour: str = ""
@@ -597,8 +598,11 @@ def _measure_chip(comp, joint, win: _Win, config: InspectConfig, level: float,
             m.fillet_reach = info.get("reach", NAN)
             if np.isfinite(F) and F > joint.max_height_mm and info.get("rel_rms", 0.0) > 0.1:
                 # Not a meniscus: a bulging (convex) fillet fits a concave model badly
-                # and the fit overshoots. Its observed percentile is its height.
+                # and the fit overshoots. Its observed percentile is a lower bound of its
+                # height (the crest, by the termination, is specular and mostly
+                # unmeasured); the fit, an upper one, is kept for the verdict.
                 m.max_method = "percentile (bulging fillet)"
+                m.bulge_mm = F
             elif np.isfinite(F):
                 m.max_mm, m.u_max_mm, m.max_method = F, _hypot(uF, u_level), "meniscus"
                 # A chip-end fillet wets the termination at most up to its top (solder

@@ -64,7 +64,12 @@ Joint level
     band: then the reason says "EXTRAPOLATED" with the reach, and ``max_method`` (in
     every report) reads "meniscus (extrapolated, reach N%)". Otherwise ``unreliable``:
     an extrapolation never fails a joint, and a far one (the README's 0402 at 16 %
-    reach) never passes it.
+    reach) never passes it. A chip fillet that does not fit a concave meniscus (relative
+    RMS residual > 10 %) with the fit above the band is a bulging, convex one: its max is
+    the solder area's percentile, a lower bound (the crest by the termination is
+    specular and mostly unmeasured), and the fit, which overshoots a convex profile, an
+    upper one; with the percentile in the band and the fit above it the joint is
+    ``unreliable``, never a silent pass.
 13. ``ok`` otherwise — unless a gap to a neighbouring pad could not be read (its
     paths each less than half reliable: a specular web is mostly unreliable) while
     ``bridge_min_fraction`` of the reliable pixels pooled over those paths (at least
@@ -310,6 +315,13 @@ def _joint_rule(joint, comp, m: JointMeasurement, comp_result: ComponentResult,
                                     f"{m.fillet_reach:.0%} of the fitted height, < "
                                     f"{config.min_fillet_reach:.0%}): extrapolated {_um(h)}{pm}, "
                                     f"seen {_um(seen)}; not judged")
+    if math.isfinite(m.bulge_mm) and h <= joint.max_height_mm < m.bulge_mm:
+        # Between the bounds: the percentile (what is seen) lies in the band, the concave
+        # fit (which overshoots a convex profile) above it. The crest is not measured.
+        return Verdict.UNRELIABLE, (f"bulging (convex) fillet, its crest not measured: the "
+                                    f"solder seen reaches {_um(h)}{pm}, within the max "
+                                    f"{_um(joint.max_height_mm)}, the concave meniscus fitted "
+                                    f"to it {_um(m.bulge_mm)}; not judged")
     if h < joint.min_height_mm and not math.isfinite(m.bare_fraction) \
             and h < config.missing_height_mm:
         return Verdict.MISSING, f"no solder: max height {_um(h)}{pm}{how} < {_um(config.missing_height_mm)}"

@@ -162,3 +162,21 @@ def test_a_partly_measured_joint_is_excess_only_on_what_it_shows(c2):
                observed_mm=joint.nominal_height_mm, u_max_mm=0.005, max_method="percentile",
                gap_mm=0.2, gap_neighbour="C2.2")
     assert r.verdict is Verdict.BRIDGE
+
+
+def test_a_bulging_fillet_whose_crest_is_unmeasured_never_passes(c2):
+    """A convex fillet: the solder seen (a lower bound) in the band, the concave fit (an
+    upper one) above it: `unreliable`, not `ok` (two excess fillets 26 and 57 µm over
+    the band passed so on test boards). Above the band as seen, it is `excess`; a fit
+    within the band is an ordinary pass."""
+    joint = c2[0]
+    top = joint.max_height_mm
+    seen = top - 0.03
+    r = _judge(c2, max_mm=seen, max_method="percentile (bulging fillet)", observed_mm=seen,
+               bulge_mm=top + 0.2)
+    assert r.verdict is Verdict.UNRELIABLE and "bulging" in r.reason
+    r = _judge(c2, max_mm=top + 0.01, max_method="percentile (bulging fillet)",
+               observed_mm=top + 0.01, bulge_mm=top + 0.2)
+    assert r.verdict is Verdict.EXCESS
+    r = _judge(c2, max_mm=seen, max_method="percentile", observed_mm=seen)
+    assert r.verdict is Verdict.OK
