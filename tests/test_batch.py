@@ -675,6 +675,44 @@ def test_killed_batch_rerun_finishes_the_rest(pool_run, stacks, tmp_path):
     assert board_files() == written
 
 
+def test_a_rig_calibration_reaches_every_board_and_its_change_redoes_them(pool_run, stacks,
+                                                                          tmp_path):
+    """`batch --calibration`: every board is inspected with it (a z scale of 1.03 scales
+    the joints' heights), and a changed calibration file re-inspects a finished board
+    instead of skipping it (its content is part of the input fingerprint)."""
+    from smdinspect.calibrate import ZScaleCalibration, write_calibration
+
+    name = "lineA/board0"
+    shutil.copytree(stacks / name, tmp_path / "in" / name)
+
+    def cal(scale):
+        return write_calibration(tmp_path / "rig.cal.json", z_scale=ZScaleCalibration(
+            scale=scale, known_step_mm=0.5, measured_step_mm=0.5 / scale, scale_sigma=0.001,
+            step_mm=0.1, top_share=0.4, residual_rms_mm=0.002, coverage=0.9))
+
+    out = tmp_path / "reports"
+    cli_code = subprocess.run(
+        [PY, "-m", "smdinspect", "-q", "batch", str(tmp_path / "in"), "--board", str(BOARD),
+         "--out", str(out), "--calibration", str(cal(1.03)), "--no-spc"],
+        cwd=REPO, capture_output=True, text=True, timeout=180)
+    assert cli_code.returncode == pool_run.board(name).exit_code, cli_code.stderr
+    ref = {j["id"]: j["measured"]["max_height_mm"]
+           for j in json.loads((Path(pool_run.board(name).out_dir) / "report.json")
+                               .read_text())["joints"]}
+    got = {j["id"]: j["measured"]["max_height_mm"]
+           for j in json.loads((out / name / "report.json").read_text())["joints"]}
+    ratios = [got[k] / ref[k] for k in ref if ref[k] and got.get(k) and ref[k] > 0.1]
+    assert len(ratios) >= 6 and np.median(ratios) == pytest.approx(1.03, abs=0.01)
+    again = run_batch(tmp_path / "in", BOARD, out, workers=1, spc=False,
+                      calibration=tmp_path / "rig.cal.json")
+    assert [b.skipped for b in again.boards] == [True]
+    redo = run_batch(tmp_path / "in", BOARD, out, workers=1, spc=False,
+                     calibration=cal(1.0))
+    assert [b.skipped for b in redo.boards] == [False]
+    with pytest.raises(InputError, match="does not exist"):
+        run_batch(tmp_path / "in", BOARD, out, calibration=tmp_path / "none.json")
+
+
 # -- bad boards, crashes -------------------------------------------------------------
 
 

@@ -111,6 +111,8 @@ class BoardJob:
     html: bool = True
     #: Dask event topic the worker sends the board's progress to (empty: none).
     progress_topic: str = ""
+    #: Rig calibration file (absolute path; empty: none), passed on as ``calibration``.
+    calibration: str = ""
 
     @property
     def threads(self) -> int:
@@ -291,6 +293,8 @@ def _inspect_into(job: BoardJob, tmp: Path, t0: float, digest: str,
         inspect_stack = _resolve(job.inspect_fn)
         stack = FocalStack.open(job.stack_dir)
         extra: dict[str, Any] = {} if job.html else {"html": False}
+        if job.calibration:
+            extra["calibration"] = job.calibration
         if report is not None:
             n_frames = len(stack)
             report("reconstruct", 0, n_frames)

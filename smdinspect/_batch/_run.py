@@ -156,6 +156,7 @@ def run_batch(
     progress: Callable[[int, int], None] | None = None,
     board_progress: Callable[[str, str, int, int], None] | None = None,
     inspect_fn: str = DEFAULT_INSPECT_FN,
+    calibration: str | os.PathLike | None = None,
 ) -> BatchResult:
     """Inspect every stack under ``stacks_dir`` against one reference board.
 
@@ -231,6 +232,10 @@ def run_batch(
         ``"module:function"`` run per board, with the signature and contract of
         :func:`smdinspect.pipeline.inspect_stack` (the default); it must be importable
         by the workers.
+    calibration : path, optional
+        Rig calibration file (``smdinspect calibrate``) applied to every board (focal
+        plane, z scale); the workers must see it. Its content is part of each board's
+        input fingerprint: a new calibration re-inspects every board.
 
     Returns
     -------
@@ -303,6 +308,13 @@ def run_batch(
     settings = {"smdinspect": __version__, "pipeline": inspect_fn, "focus": focus_key,
                 "inspect": inspect_config.to_dict(), "keep_unreliable": bool(keep_unreliable),
                 "html": bool(html)}
+    if calibration is not None:
+        from ..calibrate import read_calibration
+
+        read_calibration(calibration)  # a bad file fails the batch before any board runs
+        calibration = str(Path(calibration).resolve())
+        # a new calibration re-inspects every board (its content is in the fingerprint)
+        settings["calibration_sha256"] = file_sha256(calibration)
 
     with contextlib.ExitStack() as stack:
         client = None
@@ -321,7 +333,7 @@ def run_batch(
                      board=board_obj, board_sha256=board_sha256, settings=settings,
                      focus_config=focus_config, inspect_config=inspect_config,
                      keep_unreliable=bool(keep_unreliable), force=bool(force),
-                     inspect_fn=inspect_fn, html=bool(html))
+                     inspect_fn=inspect_fn, html=bool(html), calibration=calibration or "")
             for name, path in stacks
         ]
         results: dict[str, BoardResult] = {}

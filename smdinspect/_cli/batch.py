@@ -104,6 +104,8 @@ def register(sub: argparse._SubParsersAction) -> None:
                    help="joints with a smaller fraction of reliable pixels are 'unreliable' "
                         f"(default {InspectConfig.min_reliable_fraction})")
     f.add_argument("--no-html", action="store_true", help="skip each board's report.html")
+    f.add_argument("--calibration", type=Path, default=None, metavar="CAL_JSON",
+                   help="rig calibration (smdinspect calibrate) applied to every board")
     p.add_argument("--no-spc", action="store_true",
                    help="skip SPC across the boards (REPORTS_DIR/spc/: spc.csv, control "
                         "charts, run rules; see `smdinspect spc`)")
@@ -144,7 +146,8 @@ def run(args: argparse.Namespace) -> int:
                         dask_workers=args.dask_local, tls=tls, force=args.force,
                         focus_config=focus, inspect_config=inspect_config_from(args),
                         keep_unreliable=args.keep_unreliable, html=not args.no_html,
-                        spc=not args.no_spc, progress=bar.boards, board_progress=bar.board)
+                        spc=not args.no_spc, progress=bar.boards, board_progress=bar.board,
+                        calibration=args.calibration)
     finally:
         bar.close()
     c = res.counts()

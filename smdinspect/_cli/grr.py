@@ -78,6 +78,9 @@ def register(sub: argparse._SubParsersAction) -> None:
                    help="inspect reconstruction folders again even when they hold a "
                         "report.json (default: take the report as it is)")
     p.add_argument("--html", action="store_true", help="write each sweep's report.html")
+    p.add_argument("--calibration", type=Path, default=None, metavar="CAL_JSON",
+                   help="rig calibration (smdinspect calibrate) applied to the sweeps "
+                        "inspected here")
     p.add_argument("--no-chart", action="store_true", help="skip grr.png")
     p.set_defaults(func=run, window_px=inspection_focus_config().window_px)
 
@@ -134,11 +137,15 @@ def run(args: argparse.Namespace) -> int:
         raise InputError(f"--fail-above must be > 0 (percent); got {args.fail_above}")
     stacks, operators = _sweeps(args)
     board = load_any_board(args.board)
+    if args.calibration is not None:
+        from ..calibrate import read_calibration
+
+        read_calibration(args.calibration)  # a bad file fails now, not after the sweeps
     focus = focus_config_from(args, inspection_focus_config())
     config = inspect_config_from(args)
     found = inspect_for_grr(stacks, board, args.out, focus_config=focus, inspect_config=config,
                             pixel_size_mm=args.pixel_size_mm, html=args.html,
-                            reinspect=args.reinspect,
+                            reinspect=args.reinspect, calibration=args.calibration,
                             progress=progress_callback(args, "sweeps", unit="sweep"),
                             frame_progress=lambda label: progress_callback(args, label))
     records = read_records(found, operators=operators)

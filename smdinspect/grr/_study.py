@@ -143,7 +143,7 @@ def _labels_for(paths: Sequence[Path]) -> list[str]:
 def inspect_for_grr(stacks: Sequence[str | os.PathLike], board, out_dir: str | os.PathLike, *,
                     labels: Sequence[str] | None = None, focus_config=None, inspect_config=None,
                     pixel_size_mm: float | None = None, html: bool = False,
-                    reinspect: bool = False,
+                    reinspect: bool = False, calibration: str | os.PathLike | None = None,
                     progress: Callable[[int, int], None] | None = None,
                     frame_progress: Callable[[str], Callable[[int, int], None]] | None = None
                     ) -> list[tuple[str, Path]]:
@@ -165,6 +165,9 @@ def inspect_for_grr(stacks: Sequence[str | os.PathLike], board, out_dir: str | o
         Write each sweep's ``report.html`` too.
     reinspect : bool
         Inspect a reconstruction again even when it holds a ``report.json``.
+    calibration : path, optional
+        Rig calibration file applied to the sweeps this inspects (report folders are
+        taken as they are).
     progress : callable(done, total), optional
         Called after each sweep.
     frame_progress : callable(label) -> progress, optional
@@ -223,6 +226,7 @@ def inspect_for_grr(stacks: Sequence[str | os.PathLike], board, out_dir: str | o
             try:
                 inspect_stack(stack, board, tmp, focus_config=focus_config,
                               inspect_config=inspect_config, html=html, source=str(path),
+                              calibration=calibration,
                               progress=frame_progress(label) if frame_progress else None)
             except BoardNotLocatedError as exc:
                 not_located = exc

@@ -80,6 +80,8 @@ def test_report_folders_and_operators_from_a_manifest(study, capsys):
     (lambda s: [s[0]], 2, "at least 2 sweeps of the board; got 1"),
     (lambda s: [s[0], s[1], "--operators", "A"], 2, "one operator per STACK"),
     (lambda s: [s[0], s[1], "--operators", "A,A", "--manifest", "m.csv"], 2, "not both"),
+    (lambda s: [s[0], s[1], "--calibration", "none.cal.json"], 2,
+     "calibration file 'none.cal.json' does not exist"),
 ])
 def test_argument_errors_are_one_line(sweeps, capsys, argv, code, message, tmp_path):
     _, stacks = sweeps
