@@ -214,18 +214,23 @@ def calibrate_z_scale(surface, *, step_height_mm: float, top_at: tuple[float, fl
     measured = float(coef[3]) if top_is_upper else -float(coef[3])
     where = "the pixel --top-at names" if top_at is not None else "the field's centre"
     if measured < 0:
+        hint = ("check that --top-at is on the block" if top_at is not None else
+                "if the block is not under the field's centre, say where it is with --top-at X,Y")
         raise InputError(
             f"the level at {where} reads {abs(measured) * 1000:.1f} µm BELOW the other: the "
             "stack's z runs the wrong way (every height would be upside down). Flip the sign "
-            "of --step-mm (or the rig's z direction) and calibrate again; if the block is not "
-            "at " + where + ", say where it is with --top-at X,Y")
+            f"of --step-mm (or the rig's z direction) and calibrate again; {hint}")
     if step and measured < MIN_STEP_FRAMES * step:
         raise InputError(f"the step reads {measured * 1000:.1f} µm, under {MIN_STEP_FRAMES:g} "
                          f"frame steps ({MIN_STEP_FRAMES * step * 1000:.0f} µm): too small to "
                          "scale z by; use a taller step")
     scale = float(step_height_mm) / measured
+    if not 0.5 <= scale <= 2.0:
+        raise InputError(f"the step reads {measured * 1000:.1f} µm against {step_height_mm * 1000:.1f} "
+                         f"µm known: a scale of {scale:.3g} is no stage error (is "
+                         "--step-height-mm in mm, and is the block's edge inside the field?)")
     # random error of H: the residual RMS over √(independent windows) on each level
-    window = int((getattr(surface, "meta", {}) or {}).get("config", {}).get("window_px", 9))
+    window = int(((getattr(surface, "meta", None) or {}).get("config") or {}).get("window_px", 9))
     per_px = n_all / len(z)  # pixels each sampled point stands for
     n_up = max(float(np.sum(upper[keep])) * per_px / window ** 2, 1.0)
     n_lo = max(float(np.sum(~upper[keep])) * per_px / window ** 2, 1.0)

@@ -118,6 +118,8 @@ def test_a_target_without_a_step_or_a_bad_height_is_refused(step_sweep, tmp_path
     for bad in (0.0, -1.0, float("nan")):
         with pytest.raises(InputError, match="positive"):
             calibrate_z_scale(surface, step_height_mm=bad)
+    with pytest.raises(InputError, match="no stage error"):
+        calibrate_z_scale(surface, step_height_mm=400.0)  # µm given as mm
     with pytest.raises(InputError, match="outside"):
         calibrate_z_scale(surface, step_height_mm=BLOCK_MM, top_at=(500, 3))
     # --top-at on the base: the named level reads below the other, as a flipped axis would
