@@ -14,13 +14,13 @@ from ..errors import InputError
 
 log = logging.getLogger(__name__)
 
-SCENES = ("cone", "staircase", "plane", "halftex", "board")
+SCENES = ("cone", "staircase", "plane", "halftex", "step", "board")
 
 
 def register(sub: argparse._SubParsersAction) -> None:
     p = sub.add_parser(
         "simulate",
-        help="render a synthetic focal stack (cone, staircase, plane, halftex, board)",
+        help="render a synthetic focal stack (cone, staircase, plane, halftex, step, board)",
         description=(
             "Render a focal stack of a known scene through the thin-lens optics and a noisy "
             "sensor. Writes frames + stack.json to OUT and the ground truth to OUT/truth/ "
@@ -55,6 +55,11 @@ def register(sub: argparse._SubParsersAction) -> None:
                    help="ordinary lenses change magnification with height (default telecentric)")
     p.add_argument("--color", action="store_true",
                    help="RGB frames for the test scenes (boards are always RGB)")
+    p.add_argument("--stage-scale", type=float, default=1.0, metavar="S",
+                   help="a stage whose real step is S times the one it records (default 1): "
+                        "try `smdinspect calibrate z-scale` on it")
+    p.add_argument("--block-mm", type=float, default=None, metavar="H",
+                   help="'step': the block's height (default 0.4)")
     g = p.add_argument_group("board")
     g.add_argument("--board", type=Path, default=None,
                    help="reference board file (default references/demo_board.json)")
@@ -86,6 +91,11 @@ def run(args: argparse.Namespace) -> int:
     _positive(args.pixel_size_mm, "--pixel-size-mm")
     if args.size is not None and args.size < 16:
         raise InputError(f"--size must be >= 16 pixels; got {args.size}")
+    _positive(args.stage_scale, "--stage-scale")
+    if args.block_mm is not None:
+        if args.scene != "step":
+            raise InputError("--block-mm is only for 'simulate step'")
+        _positive(args.block_mm, "--block-mm")
     if args.scene != "board":
         for name in ("board", "offset_mm", "rotate_deg"):
             if getattr(args, name) is not None:
@@ -109,7 +119,7 @@ def run(args: argparse.Namespace) -> int:
     noise_seed = args.seed if args.noise_seed is None else args.noise_seed
     stack = render_stack(scene, z, optics=optics, sensor=sensor, seed=noise_seed, out=out,
                          progress=progress_callback(args, f"simulate {args.scene}"),
-                         overwrite=args.force, truth_extra=extra)
+                         overwrite=args.force, truth_extra=extra, stage_scale=args.stage_scale)
     if labels is not None:
         from .. import _atomic
 
@@ -178,6 +188,10 @@ def _build_scene(args: argparse.Namespace):
         return synth.slanted_plane_scene(size_px=size, color=args.color, **common), None
     if args.scene == "halftex":
         return synth.half_textured_scene(size_px=size, color=args.color, **common), None
+    if args.scene == "step":
+        block = 0.4 if args.block_mm is None else args.block_mm
+        return synth.step_target_scene(size_px=size, color=args.color, block_mm=block,
+                                       **common), None
     return _board_scene(args)
 
 

@@ -16,8 +16,9 @@ one tilt shared by both surfaces (a block's faces are parallel; the field's own 
 and curvature are the flat calibration's business), H the measured step in the stack's
 nominal z. The pixels are split into the two levels by the midpoint of the two modes of
 their heights, then reassigned to the level they fit better and the model refitted,
-with 3·MAD clipping (the bled band along the step's edge and dirt do not pull it), until
-the split no longer changes.
+with 3·MAD clipping (dirt does not pull it), until the split no longer changes; then
+the pixels within a focus window of the other level (whose windows mix the two depths)
+are left out and the model is fitted once more.
 
 Which level is the block is not told by the heights when z may run the wrong way: it is
 the level under the field's centre unless ``top_at`` names a pixel on it. A step that
@@ -26,8 +27,9 @@ calibration.
 
 The scale ``s = known / H`` (true mm per nominal mm) is what :func:`apply_z_scale`
 multiplies the heights by, about the sweep's lowest frame (relative heights are what
-scale; the lowest frame keeps its z). Its 1σ uncertainty is the two levels' random
-error: the fit's residual RMS over √(independent windows) on each level.
+scale; the lowest frame keeps its z). Its 1σ uncertainty combines the two levels' random
+error (the fit's residual RMS over √(independent windows) on each level) with the
+sub-frame bias between two levels (:data:`SUBFRAME_BIAS_STEPS`).
 """
 
 from __future__ import annotations
@@ -36,6 +38,7 @@ import math
 from dataclasses import dataclass, replace
 from typing import Any
 
+import cv2
 import numpy as np
 
 from ..errors import InputError
@@ -47,6 +50,11 @@ __all__ = ["ZScaleCalibration", "apply_z_scale", "calibrate_z_scale"]
 MIN_LEVEL_SHARE = 0.05
 #: The step must read at least this many frame steps for a scale worth storing.
 MIN_STEP_FRAMES = 3.0
+#: 1σ of the sub-frame bias between two levels, in frame steps: a height's error depends
+#: a little on where it falls between two frames (``benchmarks/accuracy.py``, terraces:
+#: worst peak-to-peak of the mean error over the fractional position 0.022 Δd), and the
+#: two surfaces of a step fall at different fractional positions.
+SUBFRAME_BIAS_STEPS = 0.01
 
 
 @dataclass(frozen=True)
@@ -62,7 +70,8 @@ class ZScaleCalibration:
     measured_step_mm : float
         The step read in the sweep's nominal z (top level − base level).
     scale_sigma : float
-        1σ uncertainty of ``scale`` (absolute), from the levels' random error.
+        1σ uncertainty of ``scale`` (absolute): the levels' random error and the
+        sub-frame bias between them.
     step_mm : float or None
         Δd of the calibration sweep (nominal).
     top_share : float
@@ -111,7 +120,8 @@ class ZScaleCalibration:
         dd = f" = {self.measured_step_mm / self.step_mm:.1f} Δd" if self.step_mm else ""
         return (f"step read {self.measured_step_mm * 1000:.1f} µm{dd} against "
                 f"{self.known_step_mm * 1000:.1f} µm known: z scale {self.scale:.4f} ± "
-                f"{self.scale_sigma:.4f} (heights were {100 * (1 / self.scale - 1):+.2f} % off); "
+                f"{self.scale_sigma:.4f} (heights were "
+                f"{100 * (1 / self.scale - 1):+.2f} % off); "
                 f"upper level {100 * self.top_share:.0f} % of the {100 * self.coverage:.0f} % "
                 f"of the field measured, fit residual {self.residual_rms_mm * 1000:.1f} µm RMS")
 
@@ -200,6 +210,21 @@ def calibrate_z_scale(surface, *, step_height_mm: float, top_at: tuple[float, fl
         if np.array_equal(new_upper, upper) and np.array_equal(new_keep, keep):
             break
         upper, keep = new_upper, new_keep
+    # A focus window straddling the step's edge mixes the two depths: within a window
+    # of the other level the heights lean towards it (by less than the clipping sees).
+    # Those pixels are left out of the final fit.
+    window = int(((getattr(surface, "meta", None) or {}).get("config") or {}).get("window_px", 9))
+    full = np.zeros(shape, np.int8)  # +1 upper level, -1 base, 0 neither (all reliable pixels)
+    ar, ac = np.nonzero(ok)
+    base_all = coef[0] + coef[1] * cu[ac] + coef[2] * rv[ar]
+    za = h_mm[ar, ac]
+    full[ar, ac] = np.where(np.abs(za - base_all - coef[3]) < np.abs(za - base_all), 1, -1)
+    near = np.zeros(shape, bool)
+    kernel = np.ones((2 * window + 1, 2 * window + 1), np.uint8)
+    for side in (1, -1):
+        other = cv2.dilate((full == -side).astype(np.uint8), kernel).astype(bool)
+        near |= (full == side) & other
+    keep &= ~near[rows, cols]
     X[:, 3] = upper
     coef = _fit(X, z, keep)
     r = (z - X @ coef)[keep]
@@ -230,12 +255,12 @@ def calibrate_z_scale(surface, *, step_height_mm: float, top_at: tuple[float, fl
                          f"µm known: a scale of {scale:.3g} is no stage error (is "
                          "--step-height-mm in mm, and is the block's edge inside the field?)")
     # random error of H: the residual RMS over √(independent windows) on each level
-    window = int(((getattr(surface, "meta", None) or {}).get("config") or {}).get("window_px", 9))
     per_px = n_all / len(z)  # pixels each sampled point stands for
     n_up = max(float(np.sum(upper[keep])) * per_px / window ** 2, 1.0)
     n_lo = max(float(np.sum(~upper[keep])) * per_px / window ** 2, 1.0)
     rms = float(np.sqrt(np.mean(r ** 2)))
-    sigma_h = rms * math.sqrt(1 / n_up + 1 / n_lo)
+    sigma_h = math.hypot(rms * math.sqrt(1 / n_up + 1 / n_lo),
+                         SUBFRAME_BIAS_STEPS * (step or 0.0))
     return ZScaleCalibration(
         scale=scale, known_step_mm=float(step_height_mm), measured_step_mm=measured,
         scale_sigma=scale * sigma_h / measured, step_mm=step,

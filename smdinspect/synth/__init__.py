@@ -39,7 +39,8 @@ from ._suite import (
     steps,
     texture,
 )
-from ._scenes import cone_scene, half_textured_scene, slanted_plane_scene, staircase_scene
+from ._scenes import (cone_scene, half_textured_scene, slanted_plane_scene, staircase_scene,
+                      step_target_scene)
 
 __all__ = [
     "Case",
@@ -75,6 +76,7 @@ __all__ = [
     "slanted_plane_scene",
     "sphere_cap",
     "staircase_scene",
+    "step_target_scene",
     "steps",
     "texture",
 ]

@@ -635,6 +635,7 @@ def render_stack(
     overwrite: bool = False,
     previews: bool = True,
     truth_extra: dict[str, Any] | None = None,
+    stage_scale: float = 1.0,
 ):
     """Render a focal stack, frame by frame, in the order of ``z_mm``.
 
@@ -662,6 +663,11 @@ def render_stack(
         Write the PNG previews in ``truth/`` (needs matplotlib).
     truth_extra : dict, optional
         Extra JSON-able facts stored in ``truth/scene.json`` (e.g. the board labels file).
+    stage_scale : float
+        A stage that lies about its z: frame ``n`` is rendered at
+        ``z_lo + stage_scale·(z_mm[n] − z_lo)`` (``z_lo`` the lowest) but recorded at
+        ``z_mm[n]``, as a rig whose real step is ``stage_scale`` times the one it reports
+        (for ``smdinspect calibrate z-scale``). ``truth/scene.json`` records it.
 
     Returns
     -------
@@ -684,6 +690,8 @@ def render_stack(
         raise InputError("z_mm must be finite")
     if np.unique(np.round(z * 1e6)).size != z.size:
         raise InputError("z_mm holds the same height twice; every frame needs its own z")
+    stage_scale = _check_number(stage_scale, "stage_scale", positive=True)
+    z_true = z if stage_scale == 1.0 else z.min() + stage_scale * (z - z.min())
     t = default_layer_mm(scene, optics) if layer_mm is None else _check_number(
         layer_mm, "layer_mm", positive=True)
     n = z.size
@@ -714,8 +722,8 @@ def render_stack(
     keep = set(np.linspace(0, n - 1, 4).round().astype(int).tolist())
     kept: dict[int, np.ndarray] = {}
     frames = []
-    for i, zi in enumerate(z):
-        frame = render_frame(scene, float(zi), optics=optics, sensor=sensor, rng=seed,
+    for i, (zi, zt) in enumerate(zip(z, z_true)):
+        frame = render_frame(scene, float(zt), optics=optics, sensor=sensor, rng=seed,
                              lighting=lighting, layer_mm=t)
         if writer is None:
             frames.append(frame)
@@ -738,7 +746,8 @@ def render_stack(
         seed=seed,
         preview_frames={float(z[i]): kept[i] for i in sorted(kept)},
         previews=previews,
-        extra=truth_extra,
+        extra=truth_extra if stage_scale == 1.0 else
+        {**(truth_extra or {}), "stage_scale": stage_scale},
     )
     log.info("wrote %d frames and truth/ to %s", n, root)
     return FocalStack.open(root)

@@ -94,6 +94,33 @@ def staircase_scene(
                                                     "step_mm", "contrast", "seed", "color")))
 
 
+def step_target_scene(
+    *,
+    size_px: int = 256,
+    pixel_size_mm: float = 0.015,
+    block_mm: float = 0.4,
+    contrast: float = 0.2,
+    seed: int = 0,
+    color: bool = False,
+) -> Scene:
+    """A block of known height on a flat base, both textured: a gauge block or shim as
+    ``smdinspect calibrate z-scale`` wants it.
+
+    The block covers the centred square of half the image side (a quarter of the field,
+    under its centre) at ``block_mm``; the base is at 0. Its edges are occlusion edges.
+    """
+    n = _size(size_px)
+    p = _positive(pixel_size_mm, "pixel_size_mm")
+    b = _positive(block_mm, "block_mm")
+    rows, cols = np.indices((n, n))
+    inside = (np.abs(rows - (n - 1) / 2) < n / 4) & (np.abs(cols - (n - 1) / 2) < n / 4)
+    height = np.where(inside, b, 0.0).astype(np.float32)
+    albedo = _albedo((n, n), seed, contrast, color)
+    return Scene(height, albedo, p, name="step",
+                 meta=_meta(locals(), "step", ("size_px", "pixel_size_mm", "block_mm",
+                                               "contrast", "seed", "color")))
+
+
 def slanted_plane_scene(
     *,
     size_px: int = 256,

@@ -142,3 +142,18 @@ def test_the_calibration_file_round_trips_and_rejects_nonsense(tmp_path):
     path.write_text(json.dumps(doc))
     with pytest.raises(InputError, match="missing or bad field"):
         read_calibration(path)
+
+
+def test_simulate_step_with_a_lying_stage_then_calibrate(tmp_path, capsys):
+    """The README's try-it path: `simulate step --stage-scale` renders the frames at the
+    stage's true z and records the nominal one; `calibrate z-scale` finds the scale."""
+    out = tmp_path / "step"
+    assert main(["-q", "simulate", "step", "--size", "128", "--stage-scale", "0.97",
+                 "--block-mm", "0.3", "--out", str(out)]) == 0
+    assert json.loads((out / "truth" / "scene.json").read_text())["stage_scale"] == 0.97
+    capsys.readouterr()
+    assert main(["-q", "calibrate", "z-scale", str(out), "--step-height-mm", "0.3",
+                 "--out", str(tmp_path / "c.json")]) == 0
+    assert read_calibration(tmp_path / "c.json")["z_scale"].scale == pytest.approx(0.97, abs=0.003)
+    assert main(["-q", "simulate", "cone", "--block-mm", "0.3", "--out", str(tmp_path / "x")]) == 2
+    assert main(["-q", "simulate", "step", "--stage-scale", "0", "--out", str(tmp_path / "y")]) == 2
