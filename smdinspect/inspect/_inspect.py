@@ -156,7 +156,10 @@ def inspect_surface(surface, board, config: InspectConfig | None = None, *,
         shape=(H, W), coverage=float(reliable.mean()), height_above_mm=level.astype(np.float32),
         surface=surface,
         meta={"seconds": seconds, "step_mm": step, "board_size_mm": list(board.size_mm),
-              "board_outline_px": _outline_px(board, reg, (H, W), p)})
+              "board_outline_px": _outline_px(board, reg, (H, W), p),
+              # the rig calibration the surface was corrected with (--calibration)
+              **{k: surface.meta[k] for k in ("focal_plane_calibration", "z_scale_calibration")
+                 if k in (surface.meta or {})}})
     log.info("inspected %d joints in %.2f s: %s", len(joints), seconds,
              ", ".join(f"{k} {v}" for k, v in result.counts().items() if v))
     return result

@@ -16,7 +16,8 @@ A board that was not located gets a ``report.html`` too (:func:`not_located_html
       "board": {"name": "demo_board", "source": "references/demo_board.json",
                 "size_mm": [9.5, 9.5]},
       "measurement": {"shape": [H, W], "pixel_size_mm": 0.02, "coverage": 0.93,
-                      "step_mm": 0.05, "source": "stacks/b1"},
+                      "step_mm": 0.05, "source": "stacks/b1",
+                      "calibration": null},       # or {"z_scale": {...}, "focal_plane": {...}}
       "registration": {"method": "coarse+features", "converged": true, "reason": "",
                        "transform": [[c, -s, tx], [s, c, ty], [0, 0, 1]],   # WORLD = T·BOARD
                        "rotation_deg": 2.5, "translation_mm": [tx, ty],
@@ -133,7 +134,8 @@ def report_dict(result: InspectionResult, *, source: str | None = None) -> dict[
                   "size_mm": list(board_size) if board_size else None},
         "measurement": {"shape": list(result.shape), "pixel_size_mm": result.pixel_size_mm,
                         "coverage": round(result.coverage, 4),
-                        "step_mm": _num(result.meta.get("step_mm")), "source": source},
+                        "step_mm": _num(result.meta.get("step_mm")), "source": source,
+                        "calibration": _calibration(result.meta)},
         "registration": result.registration.to_dict(),
         "plane": {k: (round(v, 6) if isinstance(v, float) else v)
                   for k, v in result.plane.to_dict().items()},
@@ -143,6 +145,29 @@ def report_dict(result: InspectionResult, *, source: str | None = None) -> dict[
         "components": [c.to_dict() for c in result.components],
         "joints": [j.to_dict() for j in result.joints],
     }
+
+
+def _calibration(meta: dict) -> dict[str, Any] | None:
+    """The rig calibration applied to the surface (``--calibration``), or None."""
+    applied = {key: meta[name] for key, name in (("focal_plane", "focal_plane_calibration"),
+                                                 ("z_scale", "z_scale_calibration"))
+               if isinstance(meta.get(name), dict)}
+    return applied or None
+
+
+def _calibration_text(meta: dict) -> str:
+    cal = _calibration(meta) or {}
+    parts = []
+    if "focal_plane" in cal:
+        fp = cal["focal_plane"]
+        tilt = fp.get("tilt_deg")
+        parts.append("focal plane corrected"
+                     + (f" (tilt {tilt:.3f}°" if isinstance(tilt, (int, float)) else " (")
+                     + f"{', ' if isinstance(tilt, (int, float)) else ''}sag "
+                     f"{1000 * float(fp.get('curvature_sag_mm') or 0.0):.1f} µm)")
+    if "z_scale" in cal:
+        parts.append(f"z scaled × {float(cal['z_scale'].get('scale', 1.0)):.4f}")
+    return "; ".join(parts) if parts else "none"
 
 
 def not_located_dict(board, registration, *, reason: str, source: str | None = None,
@@ -596,6 +621,7 @@ def report_html(result: InspectionResult, *, source: str | None = None,
         f"{result.plane.rmse_mm * 1000:.1f} µm, {result.plane.inlier_fraction:.0%} inliers</td></tr>"
         f"<tr><th class='l'>measurement</th><td>{result.shape[1]}×{result.shape[0]} px at "
         f"{result.pixel_size_mm * 1000:.1f} µm/px, {result.coverage:.0%} reliable</td></tr>"
+        f"<tr><th class='l'>rig calibration</th><td>{esc(_calibration_text(result.meta))}</td></tr>"
         "</table>")
     legend = " ".join(f"{_chip(v.value)}{esc(v.value)} ({counts.get(v.value, 0)})" for v in Verdict)
     parts.append(f"<p>{legend}</p>")

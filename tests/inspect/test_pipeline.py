@@ -184,7 +184,8 @@ def test_inspection_applies_a_rig_calibration_once(run, tmp_path):
         scale=1.03, known_step_mm=0.5, measured_step_mm=0.5 / 1.03, scale_sigma=0.001,
         step_mm=STEP_MM, top_share=0.4, residual_rms_mm=0.002, coverage=0.9))
     assert main(["-q", "inspect", str(root / "out"), "--board", DEMO, "--out",
-                 str(tmp_path / "o"), "--calibration", str(cal), "--no-html"]) in (0, 1)
+                 str(tmp_path / "o"), "--calibration", str(cal)]) in (0, 1)
+    assert "z scaled × 1.0300" in (tmp_path / "o" / "report.html").read_text()
     doc = json.loads((tmp_path / "o" / "report.json").read_text())
     before = {j.id: j.measured_max_mm for j in result.joints}
     ratios = [j["measured"]["max_height_mm"] / before[j["id"]] for j in doc["joints"]
@@ -192,6 +193,9 @@ def test_inspection_applies_a_rig_calibration_once(run, tmp_path):
               and before[j["id"]] > 0.1]
     assert len(ratios) >= 10
     assert np.median(ratios) == pytest.approx(1.03, abs=0.008)
+    assert doc["measurement"]["calibration"]["z_scale"]["scale"] == 1.03
+    assert json.loads((root / "out" / "report.json").read_text())["measurement"]["calibration"] \
+        is None
     done = dataclasses.replace(load_reconstruction(root / "out"),
                                meta={"z_scale_calibration": {"scale": 1.03}})
     with pytest.raises(InputError, match="already corrected"):
