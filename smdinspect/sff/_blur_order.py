@@ -32,16 +32,23 @@ Measured (2026-12-02; pcb-oblique, the barcode's isolated reliable heights stand
 pixels are; metal-bore 3.4 % of the reliable pixels (the bore's outer rim, a depth
 edge); rendered demo boards (telecentric and ordinary lenses, steps 1–2.5 depths of
 field, normal and high noise) 0.2–0.8 % of the heights within 0.5 Δd of the truth.
-Streaming: three full-size 8-bit planes and the reduced grey of the previous frame with
-its blurs, all allocated once; about 50 ms per 3-Mpixel frame.
+A second pass over the frames, after the fit, and only where the check is judged: each
+pixel's pairs are the ones around its final best frame, so nothing needs tracking while
+the focus is streamed (where it is not judged — telecentric boards, fine steps — it
+costs nothing; run in the stream, it cost 5–7 ms of the main thread per 1-Mpixel
+frame whether judged or not). The pass decodes and aligns every frame again (in worker
+threads) and keeps the reduced grey of one frame and its blurs; about 50 ms per
+3-Mpixel frame besides the decoding.
 """
 
 from __future__ import annotations
 
+from typing import Callable
+
 import cv2
 import numpy as np
 
-__all__ = ["BlurOrder"]
+__all__ = ["blur_order_suspect", "reduce_frame"]
 
 #: The frames are compared on a grid reduced by this factor (the blur differences the
 #: check needs are a pixel and more; finer ones are where it says nothing anyway).
@@ -52,95 +59,82 @@ SIGMAS_PX = (1.0, 2.0, 4.0, 8.0)
 MEAN_GREY = 128.0
 
 
-class BlurOrder:
-    """Streaming state of the blur-order check (see the module doc).
+def reduce_frame(image: np.ndarray) -> np.ndarray:
+    """(H // FACTOR, W // FACTOR) float32 grey of an (aligned) frame, mean grey
+    :data:`MEAN_GREY`."""
+    from ._reconstruct import to_gray
 
-    Feed :meth:`update` once per frame in frame order, after the peak tracker's update,
-    with the frame's :meth:`reduce`; :meth:`suspect` then gives the flagged pixels.
+    g = to_gray(image)
+    h, w = g.shape
+    g = cv2.resize(g, (max(1, w // FACTOR), max(1, h // FACTOR)), interpolation=cv2.INTER_AREA)
+    mean = float(g.mean())
+    if mean > 0:
+        g *= np.float32(MEAN_GREY / mean)
+    return g
+
+
+def blur_order_suspect(read_reduced: Callable[[int], np.ndarray], n_frames: int,
+                       best_idx: np.ndarray, *, box_px: int, ratio: float) -> np.ndarray:
+    """(H, W) bool: pixels whose best frame k is explained as a blur of frame k − 1 or
+    k + 1 ``ratio`` times better than the reverse (see the module doc).
+
+    ``read_reduced(i)`` gives frame i's :func:`reduce_frame` (asked in ascending order);
+    ``best_idx`` (H, W) is every pixel's peak frame.
     """
+    h, w = best_idx.shape
+    box = max(3, (int(box_px) // FACTOR) | 1)
+    sigmas = [sg / FACTOR for sg in SIGMAS_PX]
+    size = (box, box)
+    out = np.zeros((h, w), np.uint8)
+    prev = prev_blurs = None
+    blurs: list[np.ndarray] = []
+    d = r = a = c = flag = None
+    up = np.empty((h, w), np.uint8)
+    here = np.empty((h, w), bool)
 
-    def __init__(self, shape: tuple[int, int], *, box_px: int, ratio: float) -> None:
-        self.shape = shape
-        self.ratio = float(ratio)
-        self.box = max(3, (int(box_px) // FACTOR) | 1)
-        self.sigmas = [s / FACTOR for s in SIGMAS_PX]
-        h, w = shape
-        small = (max(1, h // FACTOR), max(1, w // FACTOR))
-        self.prev: np.ndarray | None = None
-        # Every plane is allocated once: first touches of fresh memory (page faults) cost
-        # more than the arithmetic on a 3-Mpixel frame.
-        self._blurs = [np.empty(small, np.float32) for _ in self.sigmas]   # the last frame's
-        self._d, self._r = np.empty(small, np.float32), np.empty(small, np.float32)
-        self._a, self._c = np.empty(small, np.float32), np.empty(small, np.float32)
-        self._flag = np.empty(small, np.uint8)
-        self._up = np.empty(shape, np.uint8)
-        self._mask = np.empty(shape, bool)
-        # 255 where the best frame is a blur of the frame before it / after it (by
-        # ``ratio``), 0 elsewhere and while the frame after is not seen yet
-        self.before = np.zeros(shape, np.uint8)
-        self.after = np.zeros(shape, np.uint8)
-
-    @staticmethod
-    def reduce(image: np.ndarray) -> np.ndarray:
-        """(H // FACTOR, W // FACTOR) float32 grey of an (aligned) frame, mean grey
-        :data:`MEAN_GREY`; in the worker threads."""
-        from ._reconstruct import to_gray
-
-        g = to_gray(image)
-        h, w = g.shape
-        g = cv2.resize(g, (max(1, w // FACTOR), max(1, h // FACTOR)), interpolation=cv2.INTER_AREA)
-        mean = float(g.mean())
-        if mean > 0:
-            g *= np.float32(MEAN_GREY / mean)
-        return g
-
-    def _residual(self, target: np.ndarray, blurs: list[np.ndarray], out: np.ndarray) -> None:
-        """out = min over the blurs of box((target − blur)²)."""
-        size = (self.box, self.box)
-        for k, b in enumerate(blurs):
-            cv2.subtract(target, b, dst=self._d)
-            cv2.multiply(self._d, self._d, dst=self._d)
+    def residual(target, with_blurs, dst):
+        """dst = min over the blurs of box((target − blur)²)."""
+        for k, b in enumerate(with_blurs):
+            cv2.subtract(target, b, dst=d)
+            cv2.multiply(d, d, dst=d)
             if k == 0:
-                cv2.blur(self._d, size, dst=out, borderType=cv2.BORDER_REFLECT)
+                cv2.blur(d, size, dst=dst, borderType=cv2.BORDER_REFLECT)
             else:
-                cv2.blur(self._d, size, dst=self._r, borderType=cv2.BORDER_REFLECT)
-                cv2.min(out, self._r, dst=out)
+                cv2.blur(d, size, dst=r, borderType=cv2.BORDER_REFLECT)
+                cv2.min(dst, r, dst=dst)
 
-    def update(self, n: int, reduced: np.ndarray, better: np.ndarray,
-               best_idx: np.ndarray) -> None:
-        """Take frame ``n``'s reduced grey; ``better`` and ``best_idx`` are the peak
-        tracker's new-best mask and best frames after its update for frame ``n``."""
-        h, w = self.shape
-        mask = better.view(np.uint8)
-        judged = self.prev is not None and min(reduced.shape) >= self.box
-        a, c = self._a, self._c
+    def mark(frame: int, judged_flag: np.ndarray) -> None:
+        """out |= the flag, upsampled, where the best frame is ``frame``."""
+        cv2.resize(judged_flag, (w, h), dst=up, interpolation=cv2.INTER_NEAREST)
+        np.equal(best_idx, frame, out=here)
+        cv2.bitwise_or(out, up, dst=out, mask=here.view(np.uint8))
+
+    for i in range(n_frames):
+        reduced = read_reduced(i)
+        if d is None:  # every plane allocated once
+            d, r, a, c = (np.empty_like(reduced) for _ in range(4))
+            flag = np.empty(reduced.shape, np.uint8)
+            blurs = [np.empty_like(reduced) for _ in sigmas]
+            prev_blurs = [np.empty_like(reduced) for _ in sigmas]
+        judged = prev is not None and min(reduced.shape) >= box
         if judged:
-            self._residual(reduced, self._blurs, a)   # n as a blur of n - 1 (its blurs)
-        for s, b in zip(self.sigmas, self._blurs):   # now frame n's
-            cv2.GaussianBlur(reduced, (0, 0), s, dst=b, borderType=cv2.BORDER_REFLECT)
+            residual(reduced, prev_blurs, a)   # frame i as a blur of frame i − 1
+        for sg, b in zip(sigmas, blurs):
+            cv2.GaussianBlur(reduced, (0, 0), sg, dst=b, borderType=cv2.BORDER_REFLECT)
         if judged:
-            self._residual(self.prev, self._blurs, c)  # n - 1 as a blur of n
-            low = cv2.min(a, c, dst=self._d)
+            residual(prev, blurs, c)           # frame i − 1 as a blur of frame i
+            low = cv2.min(a, c, dst=d)
             nu = max(float(np.percentile(low[::3, ::3], 10)), 1e-6)
             cv2.add(a, nu, dst=a)
             cv2.add(c, nu, dst=c)
-            # pixels whose best is still frame n - 1, judged against frame n: it is a
-            # blur of frame n when (c + ν)·ratio < (a + ν)
-            cv2.multiply(c, self.ratio, dst=self._r)
-            cv2.compare(self._r, a, cv2.CMP_LT, dst=self._flag)
-            cv2.resize(self._flag, (w, h), dst=self._up, interpolation=cv2.INTER_NEAREST)
-            still = np.equal(best_idx, n - 1, out=self._mask).view(np.uint8)
-            cv2.copyTo(self._up, still, self.after)
-            # new bests at frame n, judged against frame n - 1 (and frame n + 1 next)
-            cv2.multiply(a, self.ratio, dst=self._r)
-            cv2.compare(self._r, c, cv2.CMP_LT, dst=self._flag)
-            cv2.resize(self._flag, (w, h), dst=self._up, interpolation=cv2.INTER_NEAREST)
-            cv2.copyTo(self._up, mask, self.before)
-        else:
-            cv2.subtract(self.before, 255, dst=self.before, mask=mask)   # saturates to 0
-        cv2.subtract(self.after, 255, dst=self.after, mask=mask)
-        self.prev = reduced
-
-    def suspect(self) -> np.ndarray:
-        """(H, W) bool: peaks whose frame is a blur of a neighbouring frame."""
-        return cv2.bitwise_or(self.before, self.after) > 0
+            # peaks at frame i − 1: a blur of frame i when (c + ν)·ratio < (a + ν)
+            cv2.multiply(c, ratio, dst=r)
+            cv2.compare(r, a, cv2.CMP_LT, dst=flag)
+            mark(i - 1, flag)
+            # peaks at frame i: a blur of frame i − 1 when (a + ν)·ratio < (c + ν)
+            cv2.multiply(a, ratio, dst=r)
+            cv2.compare(r, c, cv2.CMP_LT, dst=flag)
+            mark(i, flag)
+        prev = reduced
+        blurs, prev_blurs = prev_blurs, blurs
+    return out > 0

@@ -16,7 +16,7 @@ from .._malloc import release_free_memory
 from ..errors import InputError
 from ..stack import FocalStack
 from ._align import Alignment, estimate_alignment
-from ._blur_order import SIGMAS_PX, BlurOrder
+from ._blur_order import SIGMAS_PX, blur_order_suspect, reduce_frame
 from ._config import FitMethod, FocusConfig
 from ._confidence import (PRECISION_BOX_WINDOWS, blur_px_per_frame, borrowed_mask,
                           confidence_cues, confidence_map, defocus_halo_mask, depth_edge_mask,
@@ -155,8 +155,8 @@ def reconstruct(
     def load(i: int):
         moments = None  # stays None when the frame fails: the next frames must not wait
         try:
-            image, focus, small, own, reduced, moments = _load(i)
-            return image, focus, small, own, reduced
+            image, focus, small, own, moments = _load(i)
+            return image, focus, small, own
         finally:
             if moment_sums is not None:
                 moment_sums.add(i, moments)
@@ -225,12 +225,10 @@ def reconstruct(
             image = alignment.warp(image, i)
         small = [_CoarseLevel.reduce(focus, f)  # in the worker
                  for f in _coarse_factors(config, focus.shape)]
-        reduced = BlurOrder.reduce(image) if config.blur_order_ratio > 0 else None
-        return image, focus, small, own, reduced, (None if mx is None else (mx, my))
+        return image, focus, small, own, (None if mx is None else (mx, my))
 
     tracker: PeakTracker | None = None
     coarse: list[_CoarseLevel] = []
-    order: BlurOrder | None = None
     aif = None
     ref_shape = None
     depth = config.workers + 2  # frames in flight; bounds memory
@@ -241,7 +239,7 @@ def reconstruct(
             while next_i < n and len(pending) < depth:
                 pending.append(pool.submit(load, next_i))
                 next_i += 1
-            image, focus, small, own, reduced = pending.popleft().result()
+            image, focus, small, own = pending.popleft().result()
             if ref_shape is None:
                 ref_shape = image.shape
                 if min(image.shape[:2]) < config.window_px:
@@ -252,21 +250,16 @@ def reconstruct(
                                       sum_focus=moments_wanted)
                 coarse = [_CoarseLevel(image.shape[:2], n, config, f)
                           for f in _coarse_factors(config, image.shape[:2])]
-                if config.blur_order_ratio > 0:
-                    order = BlurOrder(image.shape[:2], box_px=config.window_px + 6,
-                                      ratio=config.blur_order_ratio)
                 aif = np.zeros_like(image)
             elif image.shape != ref_shape:
                 raise _mismatch(stack.frames[i].path, image.shape, first, ref_shape)
             better = tracker.update(i, focus, own=own)
-            if order is not None:
-                order.update(i, reduced, better, tracker.best_idx)
             for level, plane in zip(coarse, small):
                 level.tracker.update(i, plane)
             cv2.copyTo(image, better.view(np.uint8), aif)
             if progress is not None:
                 progress(i + 1, n)
-        del image, focus, small, own, reduced, better  # the last frame's planes
+        del image, focus, small, own, better  # the last frame's planes
     t_stream = time.perf_counter() - t0
     release_free_memory()  # the workers' freed frames, before the fit allocates afresh
     centroid = None
@@ -284,13 +277,25 @@ def reconstruct(
                          / noise_focus_spread(operator.value, config.window_px, config.threshold))
     curve: dict = {}
     order_out: dict = {}
+    order = None
+    if config.blur_order_ratio > 0:
+        def order(best_idx: np.ndarray) -> np.ndarray:
+            """The blur-order check's second pass over the (aligned) frames."""
+            def read_reduced(i: int) -> np.ndarray:
+                image = stack.read_frame(i)
+                return reduce_frame(alignment.warp(image, i) if alignment is not None else image)
+
+            with ThreadPoolExecutor(max_workers=config.workers,
+                                    thread_name_prefix="sff-order") as again:
+                return blur_order_suspect(_prefetch(read_reduced, n, again, depth=config.workers),
+                                          n, best_idx, box_px=config.window_px + 6,
+                                          ratio=config.blur_order_ratio)
     fit, confidence, halo, beyond, precision = _level(
         tracker, z_mm, config, window_px=config.window_px, halo_radius_px=config.window_px + 2,
         noise_gain=noise_gain, own_px=own_px, curve_out=curve, order=order, order_out=order_out)
     meta: dict = {"curve_power": curve} if curve else {}
-    if order is not None:
+    if order_out:
         meta["blur_order"] = order_out
-        order = None
     field = np.ones(tracker.shape, bool)
     if alignment is not None:
         field = alignment.field
@@ -462,7 +467,8 @@ def _prefetch(read: Callable[[int], np.ndarray], n: int, pool: ThreadPoolExecuto
 def _level(tracker: PeakTracker, z_mm: np.ndarray, config: FocusConfig, *, window_px: int,
            halo_radius_px: int, noise_gain: float = 1.0, own_px: int = 0,
            curve_out: dict | None = None, grid_factor: int = 1,
-           order: BlurOrder | None = None, order_out: dict | None = None):
+           order: Callable[[np.ndarray], np.ndarray] | None = None,
+           order_out: dict | None = None):
     """Fit one level's peaks and judge them: (fit, confidence, halo mask, beyond,
     precision in steps or None; see :func:`precision_steps`).
 
@@ -470,8 +476,9 @@ def _level(tracker: PeakTracker, z_mm: np.ndarray, config: FocusConfig, *, windo
     and passes the noise and second-mode tests (clearly textured, falling away from the
     end): the surface is at or beyond that end of the sweep. The halo mask includes the
     heights borrowed from a neighbour (:func:`borrowed_mask`, when the tracker has the
-    ``own_px`` window's focus) and, with ``order``, the peaks on a frame that is a blur
-    of its neighbour's (:class:`BlurOrder`; judged only where the blur per frame κ
+    ``own_px`` window's focus) and, with ``order`` (best frames → suspect mask, a pass
+    over the frames), the peaks on a frame that is a blur of its neighbour's
+    (:func:`~smdinspect.sff._blur_order.blur_order_suspect`; run only where the blur per frame κ
     reaches the smallest blur the check tries; ``order_out`` gets the figures). With
     ``curve_out`` (a dict, filled with the choice) the heights use
     :attr:`FocusConfig.fit_power` (:func:`select_curve_power` for "auto").
@@ -533,7 +540,7 @@ def _level(tracker: PeakTracker, z_mm: np.ndarray, config: FocusConfig, *, windo
         judged = kappa >= SIGMAS_PX[0]
         flagged = 0.0
         if judged:
-            late = order.suspect() & fit.interior & ~halo
+            late = order(fit.best_idx) & fit.interior & ~halo
             was = (confidence >= config.min_confidence) & ~halo
             flagged = float((late & was).sum() / max(int(was.sum()), 1))
             log.info("blur-order check: %.2f %% of the reliable peaks lie on a frame that "

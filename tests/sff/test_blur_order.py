@@ -6,7 +6,7 @@ import pytest
 
 from smdinspect.errors import InputError
 from smdinspect.sff import FocusConfig, reconstruct
-from smdinspect.sff._blur_order import BlurOrder
+from smdinspect.sff._blur_order import blur_order_suspect, reduce_frame
 from smdinspect.stack import FocalStack
 from smdinspect.synth import GatherNoise, render_gather, slanted_plane, texture
 
@@ -51,13 +51,16 @@ def test_a_frame_that_is_a_blur_of_its_neighbour_is_flagged():
     shape = tex.shape
 
     def run(frames, claimed: int) -> np.ndarray:
-        order = BlurOrder(shape, box_px=15, ratio=2.0)
-        best = np.zeros(shape, np.int16)
-        for i, f in enumerate(frames):
-            better = np.full(shape, i <= claimed)   # the best moves on up to the claimed frame
-            best[better] = i
-            order.update(i, BlurOrder.reduce(f), better, best)
-        return order.suspect()
+        best = np.full(shape, claimed, np.int16)
+        asked = []
+
+        def read(i):
+            asked.append(i)
+            return reduce_frame(frames[i])
+
+        out = blur_order_suspect(read, len(frames), best, box_px=15, ratio=2.0)
+        assert asked == list(range(len(frames)))  # one pass, in frame order
+        return out
 
     assert run(frames, 2).mean() < 0.01
     assert run(frames, 4).mean() > 0.95
@@ -111,3 +114,33 @@ def test_a_textured_slope_keeps_its_heights(tmp_path, dof_per_step):
 def test_blur_order_ratio_is_validated(bad):
     with pytest.raises(InputError, match="blur_order_ratio"):
         FocusConfig(blur_order_ratio=bad)
+
+
+def test_the_second_pass_runs_only_where_the_check_is_judged(tmp_path, monkeypatch):
+    """The check reads the frames again after the fit, and only when the stack's blur per
+    frame reaches the smallest blur it tries: a fine-step sweep (κ < 1 px/frame) is not
+    read twice; the coarse bars sweep is, once, in frame order."""
+    import smdinspect.sff._reconstruct as R
+
+    calls = []
+    real = R.blur_order_suspect
+
+    def counting(read, n, best, **kw):
+        calls.append(n)
+        return real(read, n, best, **kw)
+
+    monkeypatch.setattr(R, "blur_order_suspect", counting)
+    tex = texture("band", 96, seed=10_005, freq_cyc_px=0.2, contrast=0.25)
+    radiance, height = slanted_plane(size_px=96, low_mm=0.0, high_mm=0.5, texture=tex,
+                                     seed=10_005)
+    z = np.arange(-0.2, 0.7 + 1e-9, 0.05) + 0.013
+    frames = render_gather(radiance, height, z, blur_px_per_mm=0.5 * 0.3536 / 0.05,
+                           sigma0_px=0.5, noise=GatherNoise(read_noise=0.002), seed=10_005)
+    fine = reconstruct(_jpeg_stack(tmp_path, frames, z, quality=95), FocusConfig())
+    assert fine.meta["blur_order"]["judged"] is False and calls == []
+    bars = render_gather(_bars(96, 1), np.zeros((96, 96), np.float32), np.arange(7) * 0.3,
+                         blur_px_per_mm=20.0, sigma0_px=0.7, noise=GatherNoise(read_noise=0.004),
+                         seed=1)
+    (tmp_path / "b").mkdir()
+    coarse = reconstruct(_jpeg_stack(tmp_path / "b", bars, np.arange(7) * 0.3), FocusConfig())
+    assert coarse.meta["blur_order"]["judged"] is True and calls == [7]
