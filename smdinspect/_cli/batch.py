@@ -42,6 +42,7 @@ give its tls:// address and a client certificate the CA signed:
 def register(sub: argparse._SubParsersAction) -> None:
     from ..inspect._config import InspectConfig
     from ..sff import OPERATORS
+    from .reconstruct import add_calibration_argument
 
     p = sub.add_parser(
         "batch", help="inspect every stack under a folder (process pool or Dask cluster)",
@@ -104,8 +105,7 @@ def register(sub: argparse._SubParsersAction) -> None:
                    help="joints with a smaller fraction of reliable pixels are 'unreliable' "
                         f"(default {InspectConfig.min_reliable_fraction})")
     f.add_argument("--no-html", action="store_true", help="skip each board's report.html")
-    f.add_argument("--calibration", type=Path, default=None, metavar="CAL_JSON",
-                   help="rig calibration (smdinspect calibrate) applied to every board")
+    add_calibration_argument(f, "to every board")
     p.add_argument("--no-spc", action="store_true",
                    help="skip SPC across the boards (REPORTS_DIR/spc/: spc.csv, control "
                         "charts, run rules; see `smdinspect spc`)")

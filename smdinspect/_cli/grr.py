@@ -36,7 +36,7 @@ located in a sweep.
 
 def register(sub: argparse._SubParsersAction) -> None:
     from ..pipeline import inspection_focus_config
-    from .reconstruct import add_stack_arguments
+    from .reconstruct import add_calibration_argument, add_stack_arguments
 
     p = sub.add_parser(
         "grr", help="gauge R&R: repeatability and %GR&R per joint from repeated sweeps",
@@ -78,9 +78,7 @@ def register(sub: argparse._SubParsersAction) -> None:
                    help="inspect reconstruction folders again even when they hold a "
                         "report.json (default: take the report as it is)")
     p.add_argument("--html", action="store_true", help="write each sweep's report.html")
-    p.add_argument("--calibration", type=Path, default=None, metavar="CAL_JSON",
-                   help="rig calibration (smdinspect calibrate) applied to the sweeps "
-                        "inspected here")
+    add_calibration_argument(p, "to the sweeps inspected here")
     p.add_argument("--no-chart", action="store_true", help="skip grr.png")
     p.set_defaults(func=run, window_px=inspection_focus_config().window_px)
 
@@ -128,7 +126,7 @@ def run(args: argparse.Namespace) -> int:
     from ..grr import analyse_grr, inspect_for_grr, read_records, write_grr
     from ..pipeline import inspection_focus_config
     from .inspect import inspect_config_from
-    from .reconstruct import focus_config_from
+    from .reconstruct import check_calibration_argument, focus_config_from
 
     if args.step_mm is not None or args.z_from_name is not None:
         raise InputError("--step-mm and --z-from-name are not used by grr: give stack folders "
@@ -137,10 +135,7 @@ def run(args: argparse.Namespace) -> int:
         raise InputError(f"--fail-above must be > 0 (percent); got {args.fail_above}")
     stacks, operators = _sweeps(args)
     board = load_any_board(args.board)
-    if args.calibration is not None:
-        from ..calibrate import read_calibration
-
-        read_calibration(args.calibration)  # a bad file fails now, not after the sweeps
+    check_calibration_argument(args)
     focus = focus_config_from(args, inspection_focus_config())
     config = inspect_config_from(args)
     found = inspect_for_grr(stacks, board, args.out, focus_config=focus, inspect_config=config,

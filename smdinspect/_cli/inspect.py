@@ -16,7 +16,7 @@ log = logging.getLogger(__name__)
 def register(sub: argparse._SubParsersAction) -> None:
     from ..inspect._config import InspectConfig
     from ..pipeline import inspection_focus_config
-    from .reconstruct import add_stack_arguments
+    from .reconstruct import add_calibration_argument, add_stack_arguments
 
     p = sub.add_parser(
         "inspect", help="locate the board, measure and judge every solder joint",
@@ -35,9 +35,7 @@ def register(sub: argparse._SubParsersAction) -> None:
                    help="joints with a smaller fraction of reliable pixels are 'unreliable' "
                         f"(default {InspectConfig.min_reliable_fraction})")
     p.add_argument("--no-html", action="store_true", help="skip report.html")
-    p.add_argument("--calibration", type=Path, default=None, metavar="CAL_JSON",
-                   help="rig calibration (smdinspect calibrate): focal-plane correction and "
-                        "z scale applied before the joints are measured")
+    add_calibration_argument(p, "before the joints are measured")
     # Inspection focuses with its own, smaller window by default (steep, narrow fillets).
     p.set_defaults(func=run, window_px=inspection_focus_config().window_px)
 
@@ -71,13 +69,10 @@ def run(args: argparse.Namespace) -> int:
                             load_reconstruction)
     from ..sff._export import RECONSTRUCTION_OUTPUTS
     from ..stack import open_stack
-    from .reconstruct import focus_config_from
+    from .reconstruct import check_calibration_argument, focus_config_from
 
     board = load_any_board(args.board)  # a board JSON, or a CAD file imported on the fly
-    if args.calibration is not None:
-        from ..calibrate import read_calibration
-
-        read_calibration(args.calibration)  # a bad file fails now, not after the sweep
+    check_calibration_argument(args)
     config = inspect_config_from(args)
     carry: tuple[str, ...] = ()
     if len(args.stack) == 1 and is_reconstruction(args.stack[0]):

@@ -9,6 +9,21 @@ from pathlib import Path
 log = logging.getLogger(__name__)
 
 
+def add_calibration_argument(p: argparse.ArgumentParser, where: str) -> None:
+    """``--calibration CAL_JSON`` (reconstruct, inspect, batch, grr)."""
+    p.add_argument("--calibration", type=Path, default=None, metavar="CAL_JSON",
+                   help="rig calibration (smdinspect calibrate): its focal-plane correction "
+                        f"and z scale applied {where}")
+
+
+def check_calibration_argument(args: argparse.Namespace) -> None:
+    """Read ``--calibration`` now: a bad file fails before any sweep is processed."""
+    if getattr(args, "calibration", None) is not None:
+        from ..calibrate import read_calibration
+
+        read_calibration(args.calibration)
+
+
 def add_stack_arguments(p: argparse.ArgumentParser) -> None:
     """Stack input and focus options shared by ``reconstruct`` and ``inspect``."""
     from ..sff import FitMethod, OPERATORS
@@ -92,10 +107,8 @@ def register(sub: argparse._SubParsersAction) -> None:
                         "confidence.tiff, sigma_mm.tiff, aif.png, height_filled_mm.tiff, "
                         "sigma_filled_mm.tiff, filled.png, field.png, height.png, view3d.png, "
                         "cloud.ply, mesh.ply, mesh.stl; summary.json is always written")
-    p.add_argument("--calibration", type=Path, default=None, metavar="CAL_JSON",
-                   help="rig calibration (smdinspect calibrate): subtract its focal-plane "
-                        "tilt/curvature, scale z, and take its pixel size when the stack "
-                        "has none")
+    add_calibration_argument(p, "to the heights (and its pixel size taken when the stack "
+                                "has none)")
     p.set_defaults(func=run)
 
 
@@ -103,7 +116,7 @@ def run(args: argparse.Namespace) -> int:
     import numpy as np
 
     from .. import _atomic
-    from ..calibrate import apply_calibration_file, read_calibration
+    from ..calibrate import apply_calibration_file
     from ..cli import progress_callback
     from ..sff import reconstruct, write_reconstruction
     from ..sff._export import RECONSTRUCTION_OUTPUTS
@@ -117,8 +130,7 @@ def run(args: argparse.Namespace) -> int:
     if unknown:
         raise InputError(f"--outputs: unknown {', '.join(unknown)}; choose from "
                          f"{', '.join(RECONSTRUCTION_OUTPUTS)} (or all)")
-    if args.calibration is not None:
-        read_calibration(args.calibration)  # a bad file fails now, not after the sweep
+    check_calibration_argument(args)
     stack = open_stack(args.stack, step_mm=args.step_mm, pixel_size_mm=args.pixel_size_mm,
                        z_from_name=args.z_from_name)
     auto = resolve_auto_operator(args, stack)  # --operator auto: the texture study's pick
