@@ -219,12 +219,12 @@ def calibrate_z_scale(surface, *, step_height_mm: float, top_at: tuple[float, fl
     base_all = coef[0] + coef[1] * cu[ac] + coef[2] * rv[ar]
     za = h_mm[ar, ac]
     full[ar, ac] = np.where(np.abs(za - base_all - coef[3]) < np.abs(za - base_all), 1, -1)
-    near = np.zeros(shape, bool)
+    mixed = np.zeros(shape, bool)
     kernel = np.ones((2 * window + 1, 2 * window + 1), np.uint8)
     for side in (1, -1):
         other = cv2.dilate((full == -side).astype(np.uint8), kernel).astype(bool)
-        near |= (full == side) & other
-    keep &= ~near[rows, cols]
+        mixed |= (full == side) & other
+    keep &= ~mixed[rows, cols]
     X[:, 3] = upper
     coef = _fit(X, z, keep)
     r = (z - X @ coef)[keep]
@@ -234,8 +234,8 @@ def calibrate_z_scale(surface, *, step_height_mm: float, top_at: tuple[float, fl
                          f"reliable pixels (need {100 * MIN_LEVEL_SHARE:g} %): put the step's "
                          "edge across the field, with both surfaces textured")
     # which level is the block: the one at the named pixel (default the field's centre)
-    near = np.argsort((rows - centre[0]) ** 2 + (cols - centre[1]) ** 2)[:50]
-    top_is_upper = bool(np.mean(upper[near]) >= 0.5)
+    closest = np.argsort((rows - centre[0]) ** 2 + (cols - centre[1]) ** 2)[:50]
+    top_is_upper = bool(np.mean(upper[closest]) >= 0.5)
     measured = float(coef[3]) if top_is_upper else -float(coef[3])
     where = "the pixel --top-at names" if top_at is not None else "the field's centre"
     if measured < 0:
