@@ -134,6 +134,7 @@ class JointMeasurement:
     area_mm2: float = NAN
     u_area_mm2: float = NAN
     lead_mm: float = NAN            # gull-wing: the lead's own height (toe half of the foot)
+    lead_n: int = 0                 # ... and the reliable pixels it is the median of
     foot_reliable_fraction: float = NAN
     foot_mm: float = NAN            # gull-wing: percentile over the foot
     side_mm: float = NAN            # gull-wing: percentile over the side region
@@ -725,6 +726,7 @@ def _measure_gullwing(comp, joint, win: _Win, config: InspectConfig, level: floa
         toe_half = fr & (u >= 0.5 * (heel + toe))
         if toe_half.sum() >= 3:
             m.lead_mm = float(np.median(win.h[toe_half]))
+            m.lead_n = int(toe_half.sum())
     else:
         u_foot = NAN
     sr = side & win.rel

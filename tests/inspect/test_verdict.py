@@ -180,3 +180,26 @@ def test_a_bulging_fillet_whose_crest_is_unmeasured_never_passes(c2):
     assert r.verdict is Verdict.EXCESS
     r = _judge(c2, max_mm=seen, max_method="percentile", observed_mm=seen)
     assert r.verdict is Verdict.OK
+
+
+def test_a_lifted_lead_is_judged_on_enough_pixels_whatever_the_foot_coverage():
+    """A lead read 0.2 mm above its nominal top from 40 reliable toe-half pixels is a
+    lifted lead even when they are only 30 % of the foot; from 5 pixels at 30 % it is
+    not judged as one (the coverage rule: 40 %)."""
+    from smdinspect.inspect._reference import lead_top_mm
+    from smdinspect.inspect._verdict import LEAD_MIN_PIXELS
+
+    board = load_board(DEMO)
+    u1, j = board.component("U1"), board.joint("U1.3")
+    body = ComponentResult(ref="U1", kind="gullwing", package=u1.package, verdict=Verdict.OK,
+                           reason="", present_fraction=1.0, body_height_mm=1.5,
+                           offset_mm=(0.0, 0.0), tilt_deg=0.0, reliable_fraction=0.9)
+    top = lead_top_mm(u1) + 0.2
+
+    def judge(n):
+        m = JointMeasurement(j.id, (0.0, 0.0), 200, 0.5, max_mm=top, max_method="foot",
+                             lead_mm=top, lead_n=n, foot_reliable_fraction=0.3, toe_mm=0.01)
+        return judge_joint(j, u1, m, body, InspectConfig()).verdict
+
+    assert judge(2 * LEAD_MIN_PIXELS) is Verdict.LIFTED_LEAD
+    assert judge(5) is not Verdict.LIFTED_LEAD
