@@ -350,3 +350,37 @@ def test_issue_cases_through_shape_from_focus(tmp_path):
     for j in good:
         if j.verdict is Verdict.OK and "extrapolated" in j.max_method:
             assert "EXTRAPOLATED" in j.reason or "extrapolated" in j.reason
+
+
+def test_a_heel_reading_on_a_dry_foot_is_not_a_fillet():
+    """A gull-wing joint without solder whose foot reads a 'heel fillet' (shape from focus
+    spreads the knee's edge over the heel end of the foot) while the pad beside the foot
+    is bare: the heel reading is not the joint's max, the joint is not passed. The same
+    bump on a soldered joint (solder beside the foot) still reads as its heel fillet."""
+    import dataclasses
+
+    from smdinspect.inspect._geometry import apply2d, polygon_mask, world_to_pixel
+
+    def with_heel_bump(defects, jid):
+        surface, labels, board = truth_surface(DEMO, defects, seed=23, offset_mm=(0.0, 0.0),
+                                               rotate_deg=0.0, finish="hasl", hole_fraction=0.0)
+        T = np.array(labels["placement"]["board_to_world"])
+        h = surface.height_mm.copy()
+        pad = polygon_mask(world_to_pixel(apply2d(T, np.asarray(board.joint(jid).polygon_mm)),
+                                          shape=h.shape, pixel_size_mm=0.02), h.shape)
+        foot = pad & (h > 0.15)                                   # the lead on the pad
+        rows, cols = np.nonzero(foot)
+        u1 = board.component("U1")
+        body = world_to_pixel(apply2d(T, np.asarray([[u1.x_mm, u1.y_mm]])),
+                              shape=h.shape, pixel_size_mm=0.02)[0]
+        d = np.hypot(cols - body[0], rows - body[1])
+        x = (d - d.min()) / max(d.max() - d.min(), 1e-9)           # 0 at the heel, 1 at the toe
+        h[rows, cols] += (0.15 * np.clip(1 - 2 * x, 0, None) ** 2).astype(np.float32)
+        return inspect_surface(dataclasses.replace(surface, height_mm=h), board), jid
+
+    result, jid = with_heel_bump("U1.3:missing", "U1.3")
+    j = {x.id: x for x in result.joints}[jid]
+    assert j.max_method == "side" and j.verdict.value in ("missing", "insufficient"), (j.max_method, j.reason)
+    result, jid = with_heel_bump("", "U1.3")
+    j = {x.id: x for x in result.joints}[jid]
+    assert j.max_method == "foot" and j.verdict.value == "ok", (j.max_method, j.reason)
