@@ -192,6 +192,7 @@ def inspect_stack(
     InputError
         Bad stack, board file or settings.
     """
+    from .calibrate import APPLIED_META_KEYS, applied_calibration, apply_calibration_file
     from .inspect import load_board
     from .inspect._cfx import write_units_inspected
     from .inspect._board import check_board_in_field
@@ -220,22 +221,19 @@ def inspect_stack(
     else:
         raise InputError(f"stack must be a FocalStack, a Surface or a path; got {type(stack).__name__}")
     if surface is not None and calibration is not None:
-        done = [k for k in ("focal_plane_calibration", "z_scale_calibration") if k in surface.meta]
+        done = applied_calibration(surface.meta)
         if done:
             raise InputError(f"{source} was already corrected by a calibration "
-                             f"({', '.join(done)} in its summary.json): inspect it without "
+                             f"({', '.join(APPLIED_META_KEYS[k] for k in done)} in its "
+                             "summary.json): inspect it without "
                              "--calibration")
     out.mkdir(parents=True, exist_ok=True)
     if surface is None:
-        from .calibrate import apply_calibration_file
-
         surface = reconstruct(stack, focus_config or inspection_focus_config(), progress=progress)
         surface = apply_calibration_file(surface, calibration)
         _write_reconstruction(surface, out, keep_unreliable)
-    elif calibration is not None:
-        from .calibrate import apply_calibration_file
-
-        surface = apply_calibration_file(surface, calibration)
+    else:
+        surface = apply_calibration_file(surface, calibration)  # unchanged without one
     # The 3D view the reconstruction just rendered goes into report.html too.
     view3d = out / "view3d.png" if isinstance(stack, FocalStack) else None
     if surface.pixel_size_mm:

@@ -38,7 +38,6 @@ def _default_out(args: argparse.Namespace) -> Path:
 
 def register(sub: argparse._SubParsersAction) -> None:
     from ..calibrate import TargetKind
-    from .reconstruct import add_stack_arguments
 
     p = sub.add_parser("calibrate", help="rig calibration: pixel size, focal-plane tilt/curvature, "
                                          "z scale",
@@ -66,11 +65,7 @@ def register(sub: argparse._SubParsersAction) -> None:
                          description="Reconstruct a sweep of a flat textured target, fit its "
                                      "height map with a low-order 2D polynomial and store it as "
                                      "the correction reconstruct --calibration subtracts.")
-    add_stack_arguments(fl)
-    fl.add_argument("--rig", type=Path, default=None,
-                    help="rig file (TOML): pixel size when the stack has none")
-    fl.add_argument("--out", type=Path, default=None,
-                    help="calibration file to write or update (default RIG.cal.json)")
+    _add_sweep_arguments(fl)
     fl.add_argument("--degree", type=int, default=2,
                     help="polynomial degree: 1 tilt only, 2 tilt + curvature (default), up to 4")
     fl.set_defaults(func=run_flat)
@@ -83,17 +78,24 @@ def register(sub: argparse._SubParsersAction) -> None:
                                      "downwards means z runs the wrong way (an error). The "
                                      "calibration file's focal-plane correction, if any, is "
                                      "applied before the step is read.")
-    add_stack_arguments(zs)
+    _add_sweep_arguments(zs)
     zs.add_argument("--step-height-mm", type=float, required=True,
                     help="the step's known height (mm), e.g. a gauge block's")
     zs.add_argument("--top-at", default=None, metavar="X,Y",
                     help="a pixel (column,row) on the upper surface (default: the field's "
                          "centre is on it)")
-    zs.add_argument("--rig", type=Path, default=None,
-                    help="rig file (TOML): pixel size when the stack has none")
-    zs.add_argument("--out", type=Path, default=None,
-                    help="calibration file to write or update (default RIG.cal.json)")
     zs.set_defaults(func=run_z_scale)
+
+
+def _add_sweep_arguments(p: argparse.ArgumentParser) -> None:
+    """A calibration sweep's stack and focus options, the rig and the calibration file."""
+    from .reconstruct import add_stack_arguments
+
+    add_stack_arguments(p)
+    p.add_argument("--rig", type=Path, default=None,
+                   help="rig file (TOML): pixel size when the stack has none")
+    p.add_argument("--out", type=Path, default=None,
+                   help="calibration file to write or update (default RIG.cal.json)")
 
 
 def run_pixel_size(args: argparse.Namespace) -> int:

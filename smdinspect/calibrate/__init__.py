@@ -26,6 +26,7 @@ from ._pixel import PixelSizeResult, TargetKind, detect_target, pixel_size_from_
 from ._zscale import ZScaleCalibration, apply_z_scale, calibrate_z_scale
 
 __all__ = [
+    "APPLIED_META_KEYS",
     "CALIBRATION_SCHEMA",
     "FocalPlaneCalibration",
     "PixelSizeResult",
@@ -34,6 +35,7 @@ __all__ = [
     "apply_calibration",
     "apply_calibration_file",
     "apply_z_scale",
+    "applied_calibration",
     "calibrate_flat",
     "calibrate_z_scale",
     "detect_target",
@@ -44,6 +46,19 @@ __all__ = [
 ]
 
 CALIBRATION_SCHEMA = "smdinspect-calibration"
+
+#: Where a corrected surface's ``meta`` records each correction applied to it (by
+#: :func:`apply_calibration` and :func:`apply_z_scale`; ``summary.json`` carries them).
+APPLIED_META_KEYS = {"focal_plane": "focal_plane_calibration", "z_scale": "z_scale_calibration"}
+
+
+def applied_calibration(meta: dict[str, Any] | None) -> dict[str, Any] | None:
+    """``{"focal_plane": {...}, "z_scale": {...}}``: the corrections a surface's ``meta``
+    says were applied to it (only those present), or None when none was."""
+    meta = meta or {}
+    applied = {section: meta[key] for section, key in APPLIED_META_KEYS.items()
+               if isinstance(meta.get(key), dict)}
+    return applied or None
 
 
 def read_calibration(path: str | os.PathLike) -> dict[str, Any]:

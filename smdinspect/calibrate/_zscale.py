@@ -131,6 +131,12 @@ def _fit(X: np.ndarray, z: np.ndarray, keep: np.ndarray) -> np.ndarray:
     return coef
 
 
+def _on_upper(coef: np.ndarray, u: np.ndarray, v: np.ndarray, z: np.ndarray) -> np.ndarray:
+    """True where a height fits the upper plane (base + H) better than the base plane."""
+    base = coef[0] + coef[1] * u + coef[2] * v
+    return np.abs(z - base - coef[3]) < np.abs(z - base)
+
+
 def calibrate_z_scale(surface, *, step_height_mm: float, top_at: tuple[float, float] | None = None,
                       max_points: int = 200_000, seed: int = 0) -> ZScaleCalibration:
     """Measure a step target of known height in a reconstruction; see the module doc.
@@ -200,9 +206,8 @@ def calibrate_z_scale(surface, *, step_height_mm: float, top_at: tuple[float, fl
     for _ in range(20):
         X[:, 3] = upper
         coef = _fit(X, z, keep)
-        base = coef[0] + coef[1] * u + coef[2] * v
         # each pixel to the level it fits better, outliers (3 MAD) out
-        new_upper = np.abs(z - base - coef[3]) < np.abs(z - base)
+        new_upper = _on_upper(coef, u, v, z)
         X[:, 3] = new_upper
         r = z - X @ coef
         mad = 1.4826 * float(np.median(np.abs(r - np.median(r))))
@@ -216,9 +221,7 @@ def calibrate_z_scale(surface, *, step_height_mm: float, top_at: tuple[float, fl
     window = int(((getattr(surface, "meta", None) or {}).get("config") or {}).get("window_px", 9))
     full = np.zeros(shape, np.int8)  # +1 upper level, -1 base, 0 neither (all reliable pixels)
     ar, ac = np.nonzero(ok)
-    base_all = coef[0] + coef[1] * cu[ac] + coef[2] * rv[ar]
-    za = h_mm[ar, ac]
-    full[ar, ac] = np.where(np.abs(za - base_all - coef[3]) < np.abs(za - base_all), 1, -1)
+    full[ar, ac] = np.where(_on_upper(coef, cu[ac], rv[ar], h_mm[ar, ac]), 1, -1)
     mixed = np.zeros(shape, bool)
     kernel = np.ones((2 * window + 1, 2 * window + 1), np.uint8)
     for side in (1, -1):

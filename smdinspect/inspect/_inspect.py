@@ -150,6 +150,8 @@ def inspect_surface(surface, board, config: InspectConfig | None = None, *,
             joints.append(judge_joint(j, comp, jm[j.id], cr, cfg,
                                       component_in_field=cm[comp.ref].in_field_fraction))
     seconds = round(time.perf_counter() - t0, 3)
+    from ..calibrate import applied_calibration
+
     result = InspectionResult(
         board=board.name, board_source=str(getattr(board, "source", "")), registration=reg,
         plane=plane, joints=joints, components=comps, config=cfg, pixel_size_mm=p,
@@ -158,8 +160,7 @@ def inspect_surface(surface, board, config: InspectConfig | None = None, *,
         meta={"seconds": seconds, "step_mm": step, "board_size_mm": list(board.size_mm),
               "board_outline_px": _outline_px(board, reg, (H, W), p),
               # the rig calibration the surface was corrected with (--calibration)
-              **{k: surface.meta[k] for k in ("focal_plane_calibration", "z_scale_calibration")
-                 if k in (surface.meta or {})}})
+              "calibration": applied_calibration(surface.meta)})
     log.info("inspected %d joints in %.2f s: %s", len(joints), seconds,
              ", ".join(f"{k} {v}" for k, v in result.counts().items() if v))
     return result

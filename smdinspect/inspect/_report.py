@@ -135,7 +135,7 @@ def report_dict(result: InspectionResult, *, source: str | None = None) -> dict[
         "measurement": {"shape": list(result.shape), "pixel_size_mm": result.pixel_size_mm,
                         "coverage": round(result.coverage, 4),
                         "step_mm": _num(result.meta.get("step_mm")), "source": source,
-                        "calibration": _calibration(result.meta)},
+                        "calibration": result.meta.get("calibration")},
         "registration": result.registration.to_dict(),
         "plane": {k: (round(v, 6) if isinstance(v, float) else v)
                   for k, v in result.plane.to_dict().items()},
@@ -147,27 +147,19 @@ def report_dict(result: InspectionResult, *, source: str | None = None) -> dict[
     }
 
 
-def _calibration(meta: dict) -> dict[str, Any] | None:
-    """The rig calibration applied to the surface (``--calibration``), or None."""
-    applied = {key: meta[name] for key, name in (("focal_plane", "focal_plane_calibration"),
-                                                 ("z_scale", "z_scale_calibration"))
-               if isinstance(meta.get(name), dict)}
-    return applied or None
-
-
-def _calibration_text(meta: dict) -> str:
-    cal = _calibration(meta) or {}
+def _calibration_text(calibration: dict[str, Any] | None) -> str:
+    """The ``report.html`` line for the rig calibration applied (``--calibration``)."""
     parts = []
-    if "focal_plane" in cal:
-        fp = cal["focal_plane"]
+    fp = (calibration or {}).get("focal_plane")
+    if fp is not None:
         tilt = fp.get("tilt_deg")
-        parts.append("focal plane corrected"
-                     + (f" (tilt {tilt:.3f}°" if isinstance(tilt, (int, float)) else " (")
-                     + f"{', ' if isinstance(tilt, (int, float)) else ''}sag "
+        tilt = f"tilt {tilt:.3f}°, " if isinstance(tilt, (int, float)) else ""
+        parts.append(f"focal plane corrected ({tilt}sag "
                      f"{1000 * float(fp.get('curvature_sag_mm') or 0.0):.1f} µm)")
-    if "z_scale" in cal:
-        parts.append(f"z scaled × {float(cal['z_scale'].get('scale', 1.0)):.4f}")
-    return "; ".join(parts) if parts else "none"
+    zs = (calibration or {}).get("z_scale")
+    if zs is not None:
+        parts.append(f"z scaled × {float(zs.get('scale', 1.0)):.4f}")
+    return "; ".join(parts) or "none"
 
 
 def not_located_dict(board, registration, *, reason: str, source: str | None = None,
@@ -621,7 +613,7 @@ def report_html(result: InspectionResult, *, source: str | None = None,
         f"{result.plane.rmse_mm * 1000:.1f} µm, {result.plane.inlier_fraction:.0%} inliers</td></tr>"
         f"<tr><th class='l'>measurement</th><td>{result.shape[1]}×{result.shape[0]} px at "
         f"{result.pixel_size_mm * 1000:.1f} µm/px, {result.coverage:.0%} reliable</td></tr>"
-        f"<tr><th class='l'>rig calibration</th><td>{esc(_calibration_text(result.meta))}</td></tr>"
+        f"<tr><th class='l'>rig calibration</th><td>{esc(_calibration_text(result.meta.get('calibration')))}</td></tr>"
         "</table>")
     legend = " ".join(f"{_chip(v.value)}{esc(v.value)} ({counts.get(v.value, 0)})" for v in Verdict)
     parts.append(f"<p>{legend}</p>")
