@@ -39,6 +39,9 @@ MEAN_GREY = 128.0
 MAGNIFICATION_TREND_WARN = 0.01
 #: Decoded frames the alignment pre-pass may keep for the main pass (bytes).
 FRAME_CACHE_BYTES = 256 * 2**20
+#: A share of the field sharpest on the lowest or highest frame (the scene extends beyond
+#: the sweep there) from which reconstruct() warns and names the end to extend.
+BEYOND_SWEEP_WARN = 0.05
 #: Frames (evenly spaced) read before the main pass to choose the "auto" pre-filter
 #: when there is no alignment pre-pass (kept in the frame cache).
 PREFILTER_SAMPLE_FRAMES = 9
@@ -388,6 +391,8 @@ def reconstruct(
                 precision = precision.reshape(-1)[take]
             reliable = reliable.reshape(-1)[take] & ~hidden
             confidence[hidden] = 0.0
+    beyond = np.where(field & ~reliable, beyond, 0).astype(np.int8)
+    meta["beyond_sweep"] = _beyond_sweep(beyond, field, z_mm)
     t_total = time.perf_counter() - t0
     h, w = tracker.shape
     meta.update({
@@ -416,10 +421,31 @@ def reconstruct(
         pixel_size_mm=pixel_size,
         z_mm=z_mm,
         field=field,
-        beyond=np.where(field & ~reliable, beyond, 0).astype(np.int8),
+        beyond=beyond,
         precision_mm=None if precision is None else precision * np.float32(abs(stack.step_mm)),
         meta=meta,
     )
+
+
+def _beyond_sweep(beyond: np.ndarray, field: np.ndarray, z_mm: np.ndarray) -> dict:
+    """Shares of the field sharpest on the lowest / highest frame (``Surface.beyond``:
+    clearly peaked there, so the surface lies at or beyond that end of the sweep and is
+    not measured), for ``summary.json``; a warning names the end to extend when a share
+    reaches :data:`BEYOND_SWEEP_WARN`."""
+    n_field = max(int(np.count_nonzero(field)), 1)
+    shares = {"below": np.count_nonzero(beyond < 0) / n_field,
+              "above": np.count_nonzero(beyond > 0) / n_field}
+    ends = {"below": float(z_mm[0]), "above": float(z_mm[-1])}
+    for side, share in shares.items():
+        if share >= BEYOND_SWEEP_WARN:
+            log.warning("%.0f %% of the field is sharpest on the sweep's %s frame (z = %.3f mm): "
+                        "that part of the scene lies %s the swept range and is not measured; "
+                        "extend the sweep %s z = %.3f mm to measure it", 100 * share,
+                        "lowest" if side == "below" else "highest", ends[side], side, side,
+                        ends[side])
+    return {"below_fraction": round(shares["below"], 4),
+            "above_fraction": round(shares["above"], 4),
+            "z_min_mm": ends["below"], "z_max_mm": ends["above"]}
 
 
 class _FrameOrderSums:

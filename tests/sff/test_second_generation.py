@@ -215,19 +215,28 @@ def test_halo_reach_grows_with_the_depth_gap():
     assert not defocus_halo_mask(amp, pos, cand, blur_px_per_frame=6.0, **kwargs)[:, 30].any()
 
 
-def test_peaks_beyond_the_sweep_bound_the_dense_surface(tmp_path):
+def test_peaks_beyond_the_sweep_bound_the_dense_surface(tmp_path, caplog):
     """The top of a plane lies above the last frame: unreliable, flagged ``beyond`` and
-    drawn at the last frame's z in the dense surface, not filled from lower neighbours."""
+    drawn at the last frame's z in the dense surface, not filled from lower neighbours;
+    the summary gives the share of the field above the sweep and a warning names the
+    end to extend."""
     n = 128
     tex = texture("band", n, seed=10_031, freq_cyc_px=0.2, contrast=0.3)
     radiance, height = slanted_plane(size_px=n, low_mm=0.0, high_mm=1.0, texture=tex, seed=10_031)
     z = np.arange(0.0, 0.7 + 1e-9, 0.05)
     frames = render_gather(radiance, height, z, blur_px_per_mm=4.0, noise=GatherNoise(),
                            seed=10_031)
-    s = reconstruct(_stack(tmp_path, frames, z), FocusConfig())
+    with caplog.at_level("WARNING", logger="smdinspect.sff._reconstruct"):
+        s = reconstruct(_stack(tmp_path, frames, z), FocusConfig())
     above = height > z[-1] + 0.1
     assert not s.reliable[above].any()
     assert (s.beyond[above] == 1).mean() > 0.8
+    share = s.meta["beyond_sweep"]
+    assert share["above_fraction"] == pytest.approx((s.beyond == 1).mean(), abs=1e-4)
+    assert 0.8 * above.mean() < share["above_fraction"] < (height > z[-1]).mean() + 0.05
+    assert share["below_fraction"] < 0.01 and share["z_max_mm"] == pytest.approx(z[-1])
+    warned = [r.getMessage() for r in caplog.records if "sharpest on the sweep's" in r.getMessage()]
+    assert len(warned) == 1 and "highest frame" in warned[0] and "extend the sweep above" in warned[0]
     dense, filled, _ = s.dense
     assert np.median(dense[above]) == pytest.approx(z[-1], abs=1e-6)
     assert filled[above].all()
