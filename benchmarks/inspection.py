@@ -16,6 +16,8 @@ board); ``--mode truth`` inspects the true height map with 3 µm noise and 5 % h
 quick check of the rules' logic, ~2 s per board).
 
     .venv/bin/python benchmarks/inspection.py --seeds test --boards 24 --mode sff --out bench/
+    .venv/bin/python benchmarks/inspection.py --seeds tuning --first 8 --boards 20 --cache cache/
+        # --cache: surfaces kept and reused, so a change to the verdict rules re-runs fast
 
 Counted: defects past their IPC-A-610 Class 2 limit (:data:`SEVERITY`) on parts wholly
 inside the image. *Recall*: called any defect; *right class*: called a verdict that names
@@ -32,6 +34,7 @@ import argparse
 import csv
 import json
 import math
+import pickle
 import sys
 import tempfile
 import time
@@ -106,12 +109,22 @@ def _sff_surface(scene, case, tmp: Path):
     return reconstruct(stack, cfg)
 
 
-def run_case(name: str, seed: int, mode: str, tmp: Path) -> dict:
+def run_case(name: str, seed: int, mode: str, tmp: Path, cache: Path | None = None) -> dict:
     board = load_board(BOARDS[name])
     case = random_board_case(board, seed)
     scene, labels = board_scene(case["board"], **scene_kwargs(case))
-    surface = _truth_surface(scene, seed) if mode == "truth" else \
-        _sff_surface(scene, case, tmp / f"{name}-{seed}")
+    kept = None if cache is None or mode != "sff" else cache / f"{name}-{seed}.pkl"
+    if kept is not None and kept.exists():
+        surface = pickle.loads(kept.read_bytes())
+    elif mode == "truth":
+        surface = _truth_surface(scene, seed)
+    else:
+        surface = _sff_surface(scene, case, tmp / f"{name}-{seed}")
+        if kept is not None:
+            kept.parent.mkdir(parents=True, exist_ok=True)
+            part = kept.with_suffix(".part")
+            part.write_bytes(pickle.dumps(surface, protocol=5))
+            part.replace(kept)
     out = {"board": name, "seed": seed, "lens": case["lens"], "finish": case["finish"],
            "fiducials": case["fiducials"], "edge": case["edge"], "located": True, "joints": []}
     try:
@@ -280,6 +293,10 @@ def main(argv=None) -> int:
     ap.add_argument("--mode", choices=("sff", "truth"), default="sff")
     ap.add_argument("--out", type=Path, default=None, help="write cases.json, curves.csv, curves.png")
     ap.add_argument("--list", action="store_true", help="print every miss and false call")
+    ap.add_argument("--cache", type=Path, default=None,
+                    help="keep each board's reconstructed surface here and reuse it on the next "
+                         "run (to try verdict rules quickly; empty it after changing the SFF "
+                         "core or the renderer)")
     args = ap.parse_args(argv)
     seeds = TEST_SEEDS if args.seeds == "test" else TUNING_SEEDS
     names = list(BOARDS) if args.board == "both" else [args.board]
@@ -289,7 +306,7 @@ def main(argv=None) -> int:
         for k in range(args.boards):
             for name in names:
                 seed = seeds[args.first + k]
-                cases.append(run_case(name, seed, args.mode, Path(tmp)))
+                cases.append(run_case(name, seed, args.mode, Path(tmp), args.cache))
                 print(f"  {name} seed {seed}: {time.perf_counter() - t0:.0f} s", file=sys.stderr)
     s = summarise(cases)
     print(f"mode {args.mode}, {args.seeds} seeds {seeds[args.first]}..{seeds[args.first + args.boards - 1]}")
