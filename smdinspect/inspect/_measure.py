@@ -137,6 +137,7 @@ class JointMeasurement:
     lead_n: int = 0                 # ... and the reliable pixels it is the median of
     foot_reliable_fraction: float = NAN
     foot_mm: float = NAN            # gull-wing: percentile over the foot
+    heel_fit_n: int = 0             # gull-wing: reliable foot pixels the heel meniscus is fitted to
     side_mm: float = NAN            # gull-wing: percentile over the side region
     cap_mm: float = NAN             # chip: end-cap top above its nominal height
     toe_mm: float = NAN             # gull-wing: solder just beyond the toe (median)
@@ -751,12 +752,12 @@ def _measure_gullwing(comp, joint, win: _Win, config: InspectConfig, level: floa
     # The solder on the foot: its top at the heel from the meniscus fitted along the foot
     # (hundreds of pixels), not the percentile (the highest few, next to the knee's
     # blurred edge); the percentile when too few foot pixels are reliable.
-    on_foot, u_on_foot = m.foot_mm, u_foot
+    on_foot, u_on_foot, heel_n = m.foot_mm, u_foot, 0
     if fr.sum() >= HEEL_FIT_MIN_PIXELS and np.isfinite(m.lead_mm):
         hf_mm, u_hf = _heel_fillet(u[fr] - heel, win.h[fr], win.u[fr], m.lead_mm,
                                    foot_length_mm=toe - heel, pixel_size_mm=p)
         if np.isfinite(hf_mm):
-            on_foot, u_on_foot = hf_mm, u_hf
+            on_foot, u_on_foot, heel_n = hf_mm, u_hf, int(fr.sum())
     # Solder that wets the heel wets the pad beside the foot too: a heel reading with the
     # side region at bare-pad level (below missing_height_mm) is the knee's blurred edge
     # on a dry foot, not a fillet (tuning boards 8-47: good joints' side percentile
@@ -765,6 +766,7 @@ def _measure_gullwing(comp, joint, win: _Win, config: InspectConfig, level: floa
     side_bare = np.isfinite(m.side_mm) and m.side_mm < config.missing_height_mm
     if np.isfinite(on_foot) and on_foot > g_t + 0.02 and not raised_lead and not side_bare:
         m.max_mm, m.u_max_mm, m.max_method = on_foot, _hypot(u_on_foot, u_level), "foot"
+        m.heel_fit_n = heel_n
     elif np.isfinite(side_f):
         m.max_mm, m.u_max_mm, m.max_method = side_f, _hypot(side_u, u_level), "side"
     return m

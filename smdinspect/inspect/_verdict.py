@@ -49,7 +49,9 @@ Joint level
    measured is already a defect: a chip's solder area with at least half that fraction
    and :data:`MIN_EVIDENCE_PIXELS` reliable whose percentile stands above
    ``max_height_mm`` by more than its uncertainty is ``excess`` (the unmeasured rest
-   cannot lower it; on fewer pixels the body's bled edge can read that high).
+   cannot lower it; on fewer pixels the body's bled edge can read that high). A
+   gull-wing heel fitted to enough reliable foot pixels, with its side region measured,
+   is judged on that fit from half the fraction on (:func:`_judged_on_heel_fit`).
 10. ``missing`` without a colour cue: the max height is below ``missing_height_mm``.
 11. ``insufficient``: below the joint's ``min_height_mm``.
 12. ``excess``: above the joint's ``max_height_mm``.
@@ -85,7 +87,7 @@ import math
 import numpy as np
 
 from ._config import InspectConfig, Verdict
-from ._measure import ComponentMeasurement, JointMeasurement
+from ._measure import HEEL_FIT_MIN_PIXELS, ComponentMeasurement, JointMeasurement
 from ._reference import lead_top_mm
 from ._result import ComponentResult, JointResult
 
@@ -240,6 +242,54 @@ def judge_joint(joint, comp, m: JointMeasurement, comp_result: ComponentResult,
         polygon_px=m.polygon_px)
 
 
+def _judged_on_heel_fit(joint, comp, m: JointMeasurement, config: InspectConfig) -> bool:
+    """A gull-wing joint is judged on its heel fillet's own evidence, however little of
+    its solder area is reliable (rule 9), when that max is the meniscus fitted along the
+    foot to at least :data:`HEEL_FIT_MIN_PIXELS` reliable pixels, the side region beside
+    the foot is measured too (so a dry foot's heel reading was tested against a bare pad,
+    rule 12's premise) and at least half of ``min_reliable_fraction`` of the area is
+    reliable. The solder area of a gull-wing is mostly the foot's top, whose lead
+    surface a 5-px window sees poorly; the heel fit is a reading over hundreds of
+    pixels. On tuning boards 8-47 good heel joints read -15 ... +7 µm (5th-95th
+    percentile, 24 joints) at 20-30 % coverage, -20 ... +9 µm (52) at 30-40 % and
+    -19 ... +5 µm (452) above 40 %: the same reading. A lead standing above its nominal
+    top with no solder up to its underside (rule 6's lifted lead, on too few toe pixels
+    for rule 6) is not read as a heel fillet here; a buried foot (solder up to the
+    underside) is, and reads excess (tuning boards: a foot buried 0.09 mm over the band,
+    and a lead lifted 0.28 mm whose side region reads its blurred edge, 0.44 mm).
+
+    The side estimate (side percentile / ``side_fillet_ratio``) must agree with the heel
+    on which side of the band's minimum the joint lies: a small heel fillet, below the
+    lead's top, leaves the knee's blurred edge for the fit to read (test seed dense
+    10016: a heel fillet of 0.10 mm, under the 0.13 mm minimum, read 0.25 mm by the fit
+    and 0.12 mm from its side). And every path across the gaps to the neighbouring feet
+    must have been read (no sparse path): the coverage rule had also been what kept a
+    bridge whose web was all unreliable pixels from passing (test seed demo 10033)."""
+    if not (comp.kind == "gullwing" and m.max_method == "foot"
+            and m.heel_fit_n >= HEEL_FIT_MIN_PIXELS and math.isfinite(m.side_mm)
+            and m.reliable_fraction >= 0.5 * config.min_reliable_fraction):
+        return False
+    underside, below, _ = _under_lead(comp, m)
+    if m.lead_mm - lead_top_mm(comp) > config.lifted_lead_gap_mm and below < underside:
+        return False
+    side = m.side_mm / config.side_fillet_ratio
+    if (side >= joint.min_height_mm) != (m.max_mm >= joint.min_height_mm):
+        return False
+    # every path to the neighbouring feet was read: a gap too sparsely measured to read
+    # (a specular web is mostly unreliable pixels) leaves a bridge unchecked
+    return m.gap_sparse_n == 0
+
+
+def _under_lead(comp, m: JointMeasurement) -> tuple[float, float, str]:
+    """(the lead's measured underside, the solder level next to it — just beyond its toe,
+    else beside it —, where that level was read): a raised lead with the solder below its
+    underside is lifted, with the solder up to it buried (rule 6)."""
+    underside = m.lead_mm - float((comp.lead or {}).get("thickness_mm", 0.0))
+    if math.isfinite(m.toe_mm):
+        return underside, m.toe_mm, "beyond its toe"
+    return underside, (m.side_mm if math.isfinite(m.side_mm) else 0.0), "beside it"
+
+
 def _bridge_limit(comp, config: InspectConfig) -> float:
     """The gap height above which solder bridges (rule 8)."""
     return config.bridge_lead_height_mm if comp.kind == "gullwing" else config.bridge_height_mm
@@ -253,11 +303,7 @@ def _joint_rule(joint, comp, m: JointMeasurement, comp_result: ComponentResult,
             and (m.foot_reliable_fraction >= config.min_reliable_fraction
                  or m.lead_n >= LEAD_MIN_PIXELS):
         nominal = lead_top_mm(comp)
-        underside = m.lead_mm - float((comp.lead or {}).get("thickness_mm", 0.0))
-        if math.isfinite(m.toe_mm):
-            below, where = m.toe_mm, "beyond its toe"
-        else:
-            below, where = (m.side_mm if math.isfinite(m.side_mm) else 0.0), "beside it"
+        underside, below, where = _under_lead(comp, m)
         if m.lead_mm - nominal > config.lifted_lead_gap_mm and below < underside:
             return Verdict.LIFTED_LEAD, (f"lead top at {_um(m.lead_mm)}, "
                                          f"{_um(m.lead_mm - nominal)} above its nominal "
@@ -278,7 +324,9 @@ def _joint_rule(joint, comp, m: JointMeasurement, comp_result: ComponentResult,
         return Verdict.BRIDGE, (f"solder across the gap to {m.gap_neighbour}: "
                                 f"{config.bridge_min_fraction:.0%} of a path stands above "
                                 f"{_um(m.gap_mm)} (> {_um(bridge)})")
-    if m.reliable_fraction < config.min_reliable_fraction or not math.isfinite(m.max_mm):
+    on_heel = _judged_on_heel_fit(joint, comp, m, config)
+    if (m.reliable_fraction < config.min_reliable_fraction and not on_heel) \
+            or not math.isfinite(m.max_mm):
         seen, u_seen = m.observed_mm, m.u_max_mm
         if math.isfinite(seen) and m.n_pixels * m.reliable_fraction >= MIN_EVIDENCE_PIXELS \
                 and m.reliable_fraction >= 0.5 * config.min_reliable_fraction \
@@ -294,6 +342,9 @@ def _joint_rule(joint, comp, m: JointMeasurement, comp_result: ComponentResult,
     h, u = m.max_mm, m.u_max_mm
     pm = f" ± {_um(u)}" if math.isfinite(u) else ""
     how = f" ({m.max_method})" if m.max_method else ""
+    if on_heel and m.reliable_fraction < config.min_reliable_fraction:
+        how = (f" (heel meniscus over {m.heel_fit_n} reliable foot pixels; solder area "
+               f"{m.reliable_fraction:.0%} reliable)")
     extrapolated = m.max_method == "meniscus" and m.fillet_reach < config.min_fillet_reach
     if extrapolated:
         how = f" (meniscus, extrapolated from {m.fillet_reach:.0%} reach)"

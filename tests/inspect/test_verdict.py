@@ -203,3 +203,49 @@ def test_a_lifted_lead_is_judged_on_enough_pixels_whatever_the_foot_coverage():
 
     assert judge(2 * LEAD_MIN_PIXELS) is Verdict.LIFTED_LEAD
     assert judge(5) is not Verdict.LIFTED_LEAD
+
+
+def test_a_gullwing_heel_is_judged_on_its_heel_fit_whatever_the_solder_area_coverage():
+    """A gull-wing joint whose max is the heel meniscus fitted to enough reliable foot
+    pixels, with its side region measured and agreeing, is judged at 30 % solder-area
+    coverage: in the band it passes (the reason says what it was judged on), above it is
+    excess.
+    Without the fit (a foot percentile), without the side reading, or under half the
+    coverage rule's fraction it stays unreliable."""
+    from smdinspect.inspect._measure import HEEL_FIT_MIN_PIXELS
+    from smdinspect.inspect._reference import lead_top_mm
+
+    board = load_board(DEMO)
+    u1, j = board.component("U1"), board.joint("U1.3")
+    body = ComponentResult(ref="U1", kind="gullwing", package=u1.package, verdict=Verdict.OK,
+                           reason="", present_fraction=1.0, body_height_mm=1.5,
+                           offset_mm=(0.0, 0.0), tilt_deg=0.0, reliable_fraction=0.9)
+    inside = 0.5 * (j.min_height_mm + j.max_height_mm)
+
+    nominal = lead_top_mm(u1)
+
+    def judge(*, max_mm=inside, fraction=0.3, heel_n=4 * HEEL_FIT_MIN_PIXELS, side_mm=0.14,
+              lead_mm=nominal, sparse_n=0):
+        m = JointMeasurement(j.id, (0.0, 0.0), 400, fraction, max_mm=max_mm, u_max_mm=0.005,
+                             max_method="foot", heel_fit_n=heel_n, side_mm=side_mm,
+                             foot_reliable_fraction=fraction, lead_mm=lead_mm, lead_n=5,
+                             gap_sparse_mm=0.0, gap_sparse_n=sparse_n)
+        return judge_joint(j, u1, m, body, InspectConfig())
+
+    ok = judge()
+    assert ok.verdict is Verdict.OK and "heel meniscus over 80 reliable foot pixels" in ok.reason
+    assert judge(max_mm=j.max_height_mm + 0.1).verdict is Verdict.EXCESS
+    assert judge(max_mm=j.min_height_mm - 0.05, side_mm=0.05).verdict is Verdict.INSUFFICIENT
+    # the side estimate (0.06 / 0.5 mm) below the minimum: a heel in the band is not a pass
+    assert judge(side_mm=0.06).verdict is Verdict.UNRELIABLE
+    # a gap to a neighbour too sparsely measured to read: a bridge would go unchecked
+    assert judge(sparse_n=160).verdict is Verdict.UNRELIABLE
+    assert judge(heel_n=0).verdict is Verdict.UNRELIABLE               # a foot percentile only
+    assert judge(side_mm=float("nan")).verdict is Verdict.UNRELIABLE   # dry foot not testable
+    assert judge(fraction=0.15).verdict is Verdict.UNRELIABLE          # < half of 40 %
+    # a raised lead on too few toe pixels for the lifted-lead rule: not a heel reading;
+    # a buried one (the solder beside it up to its underside) is excess
+    assert judge(lead_mm=nominal + 0.2, max_mm=nominal + 0.22).verdict is Verdict.UNRELIABLE
+    assert judge(lead_mm=j.max_height_mm + 0.05, max_mm=j.max_height_mm + 0.06,
+                 side_mm=j.max_height_mm).verdict is Verdict.EXCESS
+    assert judge(fraction=0.5, heel_n=0).verdict is Verdict.OK          # the coverage rule as before
