@@ -160,7 +160,9 @@ def inspect_surface(surface, board, config: InspectConfig | None = None, *,
         meta={"seconds": seconds, "step_mm": step, "board_size_mm": list(board.size_mm),
               "board_outline_px": _outline_px(board, reg, (H, W), p),
               # the rig calibration the surface was corrected with (--calibration)
-              "calibration": applied_calibration(surface.meta)})
+              "calibration": applied_calibration(surface.meta),
+              # the field's share sharpest beyond each end of the sweep (not measured)
+              "beyond_sweep": surface.meta.get("beyond_sweep")})
     log.info("inspected %d joints in %.2f s: %s", len(joints), seconds,
              ", ".join(f"{k} {v}" for k, v in result.counts().items() if v))
     return result

@@ -135,7 +135,8 @@ def report_dict(result: InspectionResult, *, source: str | None = None) -> dict[
         "measurement": {"shape": list(result.shape), "pixel_size_mm": result.pixel_size_mm,
                         "coverage": round(result.coverage, 4),
                         "step_mm": _num(result.meta.get("step_mm")), "source": source,
-                        "calibration": result.meta.get("calibration")},
+                        "calibration": result.meta.get("calibration"),
+                        "beyond_sweep": result.meta.get("beyond_sweep")},
         "registration": result.registration.to_dict(),
         "plane": {k: (round(v, 6) if isinstance(v, float) else v)
                   for k, v in result.plane.to_dict().items()},
@@ -160,6 +161,17 @@ def _calibration_text(calibration: dict[str, Any] | None) -> str:
     if zs is not None:
         parts.append(f"z scaled × {float(zs.get('scale', 1.0)):.4f}")
     return "; ".join(parts) or "none"
+
+
+def _beyond_text(beyond: dict[str, Any] | None) -> str:
+    """The ``report.html`` measurement line's note on the field beyond the sweep's ends
+    (``summary.json`` → ``beyond_sweep``), from the share the reconstruction warns at."""
+    from ..sff._reconstruct import BEYOND_SWEEP_WARN
+
+    notes = [f"{100 * share:.0f} % of the field is sharpest on its {end} frame, beyond the sweep"
+             for key, end in (("below_fraction", "lowest"), ("above_fraction", "highest"))
+             if (share := float((beyond or {}).get(key) or 0.0)) >= BEYOND_SWEEP_WARN]
+    return ("; " + "; ".join(notes) + " (not measured: extend the sweep)") if notes else ""
 
 
 def not_located_dict(board, registration, *, reason: str, source: str | None = None,
@@ -612,7 +624,8 @@ def report_html(result: InspectionResult, *, source: str | None = None,
         f"<tr><th class='l'>board plane</th><td>tilt {result.plane.tilt_deg:.3f}°, RMSE "
         f"{result.plane.rmse_mm * 1000:.1f} µm, {result.plane.inlier_fraction:.0%} inliers</td></tr>"
         f"<tr><th class='l'>measurement</th><td>{result.shape[1]}×{result.shape[0]} px at "
-        f"{result.pixel_size_mm * 1000:.1f} µm/px, {result.coverage:.0%} reliable</td></tr>"
+        f"{result.pixel_size_mm * 1000:.1f} µm/px, {result.coverage:.0%} reliable"
+        f"{esc(_beyond_text(result.meta.get('beyond_sweep')))}</td></tr>"
         f"<tr><th class='l'>rig calibration</th><td>{esc(_calibration_text(result.meta.get('calibration')))}</td></tr>"
         "</table>")
     legend = " ".join(f"{_chip(v.value)}{esc(v.value)} ({counts.get(v.value, 0)})" for v in Verdict)

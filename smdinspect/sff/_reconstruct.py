@@ -430,8 +430,8 @@ def reconstruct(
 def _beyond_sweep(beyond: np.ndarray, field: np.ndarray, z_mm: np.ndarray) -> dict:
     """Shares of the field sharpest on the lowest / highest frame (``Surface.beyond``:
     clearly peaked there, so the surface lies at or beyond that end of the sweep and is
-    not measured), for ``summary.json``; a warning names the end to extend when a share
-    reaches :data:`BEYOND_SWEEP_WARN`."""
+    not measured), for ``summary.json`` (the ends' z are its ``z_range_mm``); a warning
+    names the end to extend when a share reaches :data:`BEYOND_SWEEP_WARN`."""
     n_field = max(int(np.count_nonzero(field)), 1)
     shares = {"below": np.count_nonzero(beyond < 0) / n_field,
               "above": np.count_nonzero(beyond > 0) / n_field}
@@ -444,8 +444,7 @@ def _beyond_sweep(beyond: np.ndarray, field: np.ndarray, z_mm: np.ndarray) -> di
                         "lowest" if side == "below" else "highest", ends[side], side, side,
                         ends[side])
     return {"below_fraction": round(shares["below"], 4),
-            "above_fraction": round(shares["above"], 4),
-            "z_min_mm": ends["below"], "z_max_mm": ends["above"]}
+            "above_fraction": round(shares["above"], 4)}
 
 
 class _FrameOrderSums:

@@ -194,9 +194,24 @@ def test_inspection_applies_a_rig_calibration_once(run, tmp_path):
     assert len(ratios) >= 10
     assert np.median(ratios) == pytest.approx(1.03, abs=0.008)
     assert doc["measurement"]["calibration"]["z_scale"]["scale"] == 1.03
+    # the demo sweep covers the board: nothing beyond its ends worth a note
+    assert set(doc["measurement"]["beyond_sweep"]) == {"below_fraction", "above_fraction"}
+    assert max(doc["measurement"]["beyond_sweep"].values()) < 0.05
+    assert "beyond the sweep" not in (tmp_path / "o" / "report.html").read_text()
     assert json.loads((root / "out" / "report.json").read_text())["measurement"]["calibration"] \
         is None
     done = dataclasses.replace(load_reconstruction(root / "out"),
                                meta={"z_scale_calibration": {"scale": 1.03}})
     with pytest.raises(InputError, match="already corrected"):
         inspect_stack(done, DEMO, tmp_path / "o2", calibration=cal)
+
+
+def test_the_report_notes_a_field_beyond_the_sweep():
+    """report.html's measurement line names an end of the sweep that 5 % or more of the
+    field lies beyond (a part taller than the sweep is not measured)."""
+    from smdinspect.inspect._report import _beyond_text
+
+    assert _beyond_text(None) == "" and _beyond_text({"below_fraction": 0.04}) == ""
+    assert _beyond_text({"below_fraction": 0.01, "above_fraction": 0.25}) == (
+        "; 25 % of the field is sharpest on its highest frame, beyond the sweep "
+        "(not measured: extend the sweep)")
