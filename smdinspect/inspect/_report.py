@@ -166,10 +166,10 @@ def _calibration_text(calibration: dict[str, Any] | None) -> str:
 def _beyond_text(beyond: dict[str, Any] | None) -> str:
     """The ``report.html`` measurement line's note on the field beyond the sweep's ends
     (``summary.json`` → ``beyond_sweep``), from the share the reconstruction warns at."""
-    from ..sff._reconstruct import BEYOND_SWEEP_WARN
+    from ..sff._reconstruct import BEYOND_SWEEP_ENDS, BEYOND_SWEEP_WARN
 
     notes = [f"{100 * share:.0f} % of the field is sharpest on its {end} frame, beyond the sweep"
-             for key, end in (("below_fraction", "lowest"), ("above_fraction", "highest"))
+             for key, end, _ in BEYOND_SWEEP_ENDS
              if (share := float((beyond or {}).get(key) or 0.0)) >= BEYOND_SWEEP_WARN]
     return ("; " + "; ".join(notes) + " (not measured: extend the sweep)") if notes else ""
 

@@ -324,7 +324,9 @@ def _joint_rule(joint, comp, m: JointMeasurement, comp_result: ComponentResult,
         return Verdict.BRIDGE, (f"solder across the gap to {m.gap_neighbour}: "
                                 f"{config.bridge_min_fraction:.0%} of a path stands above "
                                 f"{_um(m.gap_mm)} (> {_um(bridge)})")
-    on_heel = _judged_on_heel_fit(joint, comp, m, config)
+    # judged, however little of the solder area is reliable, on a gull-wing's heel fit
+    on_heel = (m.reliable_fraction < config.min_reliable_fraction
+               and _judged_on_heel_fit(joint, comp, m, config))
     if (m.reliable_fraction < config.min_reliable_fraction and not on_heel) \
             or not math.isfinite(m.max_mm):
         seen, u_seen = m.observed_mm, m.u_max_mm
@@ -342,7 +344,7 @@ def _joint_rule(joint, comp, m: JointMeasurement, comp_result: ComponentResult,
     h, u = m.max_mm, m.u_max_mm
     pm = f" ± {_um(u)}" if math.isfinite(u) else ""
     how = f" ({m.max_method})" if m.max_method else ""
-    if on_heel and m.reliable_fraction < config.min_reliable_fraction:
+    if on_heel:
         how = (f" (heel meniscus over {m.heel_fit_n} reliable foot pixels; solder area "
                f"{m.reliable_fraction:.0%} reliable)")
     extrapolated = m.max_method == "meniscus" and m.fillet_reach < config.min_fillet_reach

@@ -42,6 +42,9 @@ FRAME_CACHE_BYTES = 256 * 2**20
 #: A share of the field sharpest on the lowest or highest frame (the scene extends beyond
 #: the sweep there) from which reconstruct() warns and names the end to extend.
 BEYOND_SWEEP_WARN = 0.05
+#: ``summary.json`` → ``beyond_sweep`` keys, the end frame each counts and the side of the
+#: swept range it lies on.
+BEYOND_SWEEP_ENDS = (("below_fraction", "lowest", "below"), ("above_fraction", "highest", "above"))
 #: Frames (evenly spaced) read before the main pass to choose the "auto" pre-filter
 #: when there is no alignment pre-pass (kept in the frame cache).
 PREFILTER_SAMPLE_FRAMES = 9
@@ -433,18 +436,16 @@ def _beyond_sweep(beyond: np.ndarray, field: np.ndarray, z_mm: np.ndarray) -> di
     not measured), for ``summary.json`` (the ends' z are its ``z_range_mm``); a warning
     names the end to extend when a share reaches :data:`BEYOND_SWEEP_WARN`."""
     n_field = max(int(np.count_nonzero(field)), 1)
-    shares = {"below": np.count_nonzero(beyond < 0) / n_field,
-              "above": np.count_nonzero(beyond > 0) / n_field}
-    ends = {"below": float(z_mm[0]), "above": float(z_mm[-1])}
-    for side, share in shares.items():
+    out = {}
+    for (key, frame, side), sign, z in zip(BEYOND_SWEEP_ENDS, (-1, 1), (z_mm[0], z_mm[-1])):
+        share = np.count_nonzero(beyond == sign) / n_field
+        out[key] = round(share, 4)
         if share >= BEYOND_SWEEP_WARN:
             log.warning("%.0f %% of the field is sharpest on the sweep's %s frame (z = %.3f mm): "
                         "that part of the scene lies %s the swept range and is not measured; "
-                        "extend the sweep %s z = %.3f mm to measure it", 100 * share,
-                        "lowest" if side == "below" else "highest", ends[side], side, side,
-                        ends[side])
-    return {"below_fraction": round(shares["below"], 4),
-            "above_fraction": round(shares["above"], 4)}
+                        "extend the sweep %s z = %.3f mm to measure it", 100 * share, frame,
+                        float(z), side, side, float(z))
+    return out
 
 
 class _FrameOrderSums:
