@@ -60,6 +60,10 @@ def add_stack_arguments(p: argparse.ArgumentParser) -> None:
                    help="coarse focus levels (4x, 16x, 64x blocks) filling what finer ones left "
                         "unreliable, on smooth, weakly textured parts (default 2; inspect and "
                         "grr use none)")
+    p.add_argument("--band-mpixels", type=float, default=None, metavar="MPX",
+                   help="frames larger than this are measured in bands of rows of at most MPX "
+                        "megapixels each, margins included: memory follows the band, not the "
+                        "frame (default 3.5; 0: whole frames)")
     p.add_argument("--workers", type=int, default=2, help="decode/focus threads (default 2)")
     p.add_argument("--keep-unreliable", action="store_true",
                    help="keep unreliable points in cloud.ply and the mesh")
@@ -92,6 +96,8 @@ def focus_config_from(args: argparse.Namespace, base=None):
                  align=args.align, workers=args.workers)
     if getattr(args, "coarse_levels", None) is not None:  # else the base's (or the default)
         given["coarse_levels"] = args.coarse_levels
+    if getattr(args, "band_mpixels", None) is not None:
+        given["band_mpixels"] = args.band_mpixels
     if getattr(args, "prefilter", None) is not None:
         given["prefilter_px"] = prefilter_value(args.prefilter)
     return dataclasses.replace(base, **given) if base is not None else FocusConfig(**given)

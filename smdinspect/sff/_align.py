@@ -131,14 +131,34 @@ class Alignment:
         return float(np.sqrt(abs(np.linalg.det(self.transforms[n][:2, :2]))))
 
     def warp(self, image: np.ndarray, n: int, *, interpolation: int = cv2.INTER_LINEAR,
-             border_value: float = 0.0) -> np.ndarray:
-        """Resample frame n's ``image`` (its own grid) onto the reference grid."""
+             border_value: float = 0.0, rows: tuple[int, int] | None = None,
+             src_row: int = 0) -> np.ndarray:
+        """Resample frame n's ``image`` (its own grid) onto the reference grid.
+
+        With ``rows = (lo, hi)`` only those rows of the reference grid are made, from an
+        ``image`` that holds frame n's rows from ``src_row`` on (:meth:`source_rows`).
+        """
         a = self.transforms[n]
         h, w = self.shape
+        if rows is not None:
+            lo, hi = rows
+            a = (np.array([[1, 0, 0], [0, 1, -src_row], [0, 0, 1]], np.float64) @ a
+                 @ np.array([[1, 0, 0], [0, 1, lo], [0, 0, 1]], np.float64))
+            h = hi - lo
         if image.shape[:2] == (h, w) and np.allclose(a, np.eye(3), atol=1e-9):
             return image
         return cv2.warpAffine(image, a[:2], (w, h), flags=interpolation | cv2.WARP_INVERSE_MAP,
                               borderMode=cv2.BORDER_CONSTANT, borderValue=border_value)
+
+    def source_rows(self, n: int, rows: tuple[int, int], pad: int) -> tuple[int, int]:
+        """Rows ``(first, end)`` of frame n that the reference grid's ``rows = (lo, hi)``
+        are resampled from, with ``pad`` rows more each side (for the focus windows)."""
+        a = self.transforms[n]
+        w = self.shape[1]
+        ys = [a[1, 0] * x + a[1, 1] * y + a[1, 2] for x in (0, w - 1) for y in (rows[0], rows[1] - 1)]
+        frame_h = self.shape[0]
+        return (max(0, int(np.floor(min(ys))) - pad),
+                min(frame_h, int(np.ceil(max(ys))) + 1 + pad))
 
     def summary(self) -> dict:
         """JSON-able description (for ``summary.json``)."""

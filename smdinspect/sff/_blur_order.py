@@ -74,12 +74,15 @@ def reduce_frame(image: np.ndarray) -> np.ndarray:
 
 
 def blur_order_suspect(read_reduced: Callable[[int], np.ndarray], n_frames: int,
-                       best_idx: np.ndarray, *, box_px: int, ratio: float) -> np.ndarray:
+                       best_idx: np.ndarray, *, box_px: int, ratio: float,
+                       floors: dict | None = None) -> np.ndarray:
     """(H, W) bool: pixels whose best frame k is explained as a blur of frame k − 1 or
     k + 1 ``ratio`` times better than the reverse (see the module doc).
 
     ``read_reduced(i)`` gives frame i's :func:`reduce_frame` (asked in ascending order);
-    ``best_idx`` (H, W) is every pixel's peak frame.
+    ``best_idx`` (H, W) is every pixel's peak frame. ``floors`` (a dict by frame) keeps
+    each pair's floor ν: one computed is put in it, one found there is used (the bands
+    of one grid share their frames' floors).
     """
     h, w = best_idx.shape
     box = max(3, (int(box_px) // FACTOR) | 1)
@@ -124,7 +127,11 @@ def blur_order_suspect(read_reduced: Callable[[int], np.ndarray], n_frames: int,
         if judged:
             residual(prev, blurs, c)           # frame i − 1 as a blur of frame i
             low = cv2.min(a, c, dst=d)
-            nu = max(float(np.percentile(low[::3, ::3], 10)), 1e-6)
+            nu = None if floors is None else floors.get(i)
+            if nu is None:
+                nu = max(float(np.percentile(low[::3, ::3], 10)), 1e-6)
+                if floors is not None:
+                    floors[i] = nu
             cv2.add(a, nu, dst=a)
             cv2.add(c, nu, dst=c)
             # peaks at frame i − 1: a blur of frame i when (c + ν)·ratio < (a + ν)

@@ -140,6 +140,11 @@ class FocusConfig:
         Register the frames (affine, by ECC) onto the most magnified frame's grid and
         resample their focus measures there; needed for ordinary (non-telecentric)
         lenses (see :func:`smdinspect.sff.estimate_alignment`).
+    band_mpixels : float
+        Frames larger than this many megapixels are measured in bands of rows, each at
+        most this size with its margins, one band after the other (the frames are
+        decoded once a band): memory follows the band, not the frame. 0 measures the
+        whole frame at once. Default 3.5 (a 2048 x 1536 frame is measured whole).
     workers : int
         Threads that decode frames and compute focus measures (≥ 1).
     """
@@ -163,6 +168,7 @@ class FocusConfig:
     edge_gap_check: bool = True
     precision_check: bool = True
     align: bool = False
+    band_mpixels: float = 3.5
     workers: int = 2
 
     def __post_init__(self) -> None:
@@ -228,6 +234,11 @@ class FocusConfig:
                              f'got {self.prefilter_px!r}')
         if not isinstance(self.centroid_correction, bool):
             raise InputError(f"centroid_correction must be true or false; got {self.centroid_correction!r}")
+        if not (isinstance(self.band_mpixels, (int, float)) and not isinstance(self.band_mpixels, bool)
+                and math.isfinite(self.band_mpixels)
+                and (self.band_mpixels == 0 or self.band_mpixels >= 0.25)):
+            raise InputError(f"band_mpixels must be 0 (whole frames) or at least 0.25; "
+                             f"got {self.band_mpixels!r}")
         if not isinstance(self.workers, int) or self.workers < 1:
             raise InputError(f"workers must be an integer >= 1; got {self.workers!r}")
 

@@ -232,7 +232,8 @@ POWER_CANDIDATES = (0.5, 0.75, 1.0, 1.5, 2.0, 3.0)
 POWER_SAMPLE_PX = 40000
 
 
-def select_curve_power(tracker: PeakTracker, z_mm: np.ndarray, *, power: float) -> tuple[float, dict]:
+def select_curve_power(tracker: PeakTracker, z_mm: np.ndarray, *, power: float,
+                       grid_rows: tuple[int, int] | None = None) -> tuple[float, dict]:
     """The ``power`` model's exponent p under which the surface has no terraces.
 
     The shape of a focus curve is the sweep's, not the pixel's: it follows from the
@@ -246,14 +247,18 @@ def select_curve_power(tracker: PeakTracker, z_mm: np.ndarray, *, power: float) 
     :data:`POWER_SAMPLE_PX` pixels) and scored by how much the median slope magnitude of
     the clear, smooth pixels varies over 8 bins of the fractional position (relative
     spread of the bins' medians); the lowest score wins. Returns ``(p, {p: score})``;
-    the operator's own p when the crop has too few sloped pixels to judge.
+    the operator's own p when the crop has too few sloped pixels to judge. With
+    ``grid_rows = (first, height)``, the tracker holds the rows ``first ..`` of a grid
+    ``height`` rows high (a band, :func:`~smdinspect.sff.reconstruct`): the crop is the
+    whole grid's central one.
     """
     k = tracker.k
     if tracker.window is None or len(z_mm) < 4:
         return power, {}
     h, w = tracker.shape
     side = int(np.sqrt(POWER_SAMPLE_PX))
-    r0, c0 = max(0, (h - side) // 2), max(0, (w - side) // 2)
+    first, rows = (0, h) if grid_rows is None else grid_rows
+    r0, c0 = max(0, max(0, (rows - side) // 2) - first), max(0, (w - side) // 2)
     rs, cs = slice(r0, r0 + side), slice(c0, c0 + side)
     args = (tracker.best_idx[rs, cs], tracker.window[:, rs, cs], tracker.alternative[rs, cs],
             tracker.best[rs, cs], tracker.floor[rs, cs])

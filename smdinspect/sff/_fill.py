@@ -80,24 +80,47 @@ def fill_surface(height_mm: np.ndarray, reliable: np.ndarray, guide: np.ndarray,
     if rel.all():
         return h.copy(), filled, np.zeros(h.shape, np.float32)
     g = _guide8(guide)
-    w = (np.ones(h.shape, np.float32) if confidence is None
-         else np.clip(confidence, 0, 1).astype(np.float32)) * rel
+    # one plane at a time, in place: the fill of a 12-Mpixel map stays within a few
+    # planes of the surface (the smoother itself needs about three more)
+    w = np.ones(h.shape, np.float32) if confidence is None else np.clip(
+        confidence, 0, 1).astype(np.float32)
+    w *= rel
     w[anchor] = 0.5
     base = float(np.median(h[src]))
-    hz = np.where(src, h - base, 0).astype(np.float32)  # centred: better float32 sums
+    hz = h - np.float32(base)  # centred: better float32 sums
+    hz[~src] = 0.0
 
     def smooth(src: np.ndarray) -> np.ndarray:
         return cv2.ximgproc.fastGlobalSmootherFilter(g, src, FGS_LAMBDA, FGS_SIGMA_COLOR)
 
     den = smooth(w)
-    num = smooth(w * hz)
-    tiny = 1e-6
-    est = np.where(den > tiny, num / np.maximum(den, tiny), 0).astype(np.float32)
-    var = smooth(w * (hz - est) ** 2) / np.maximum(den, tiny)
-    out = np.where(src, h, est + base).astype(np.float32)
-    dist = cv2.distanceTransform((~src).astype(np.uint8), cv2.DIST_L2, 3)
-    per_px = 0.1 * abs(step_mm) if spread_per_px_mm is None else spread_per_px_mm
-    sigma = np.sqrt(np.maximum(var, 0) + (per_px * dist) ** 2).astype(np.float32)
+    tiny = np.float32(1e-6)
+    none = den <= tiny  # no source reaches: the estimate is 0 there
+    np.maximum(den, tiny, out=den)
+    est = w * hz
+    est = smooth(est)
+    est /= den
+    est[none] = 0.0
+    del none
+    # the spread of the sources' heights about the estimate, by the same filter
+    hz -= est
+    np.square(hz, out=hz)
+    hz *= w
+    del w
+    var = smooth(hz)
+    del hz
+    var /= den
+    del den
+    est += np.float32(base)
+    np.copyto(est, h, where=src)
+    out = est
+    sigma = cv2.distanceTransform((~src).astype(np.uint8), cv2.DIST_L2, 3)
+    sigma *= np.float32(0.1 * abs(step_mm) if spread_per_px_mm is None else spread_per_px_mm)
+    np.square(sigma, out=sigma)
+    np.maximum(var, 0, out=var)
+    sigma += var
+    del var
+    np.sqrt(sigma, out=sigma)
     sigma[anchor] = abs(step_mm)
     sigma[rel] = 0.0
     return out, filled, sigma

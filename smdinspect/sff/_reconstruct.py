@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import collections
+import dataclasses
 import logging
 import threading
 import time
@@ -48,6 +49,11 @@ BEYOND_SWEEP_ENDS = (("below_fraction", "lowest", "below"), ("above_fraction", "
 #: Frames (evenly spaced) read before the main pass to choose the "auto" pre-filter
 #: when there is no alignment pre-pass (kept in the frame cache).
 PREFILTER_SAMPLE_FRAMES = 9
+#: Rows measured beyond each side of a band's core (see :func:`_bands`): the reach of
+#: the checks around a pixel (halo, edges, support, the coarse levels' footprints).
+BAND_MARGIN_PX = 128
+#: Band cores start on multiples of this (the largest coarse block, 4²).
+BAND_ALIGN_PX = 16
 
 
 def to_gray(image: np.ndarray) -> np.ndarray:
@@ -105,12 +111,14 @@ def reconstruct(
     auto = config.prefilter_px == "auto"
     pool = ThreadPoolExecutor(max_workers=config.workers, thread_name_prefix="sff")
     cached = [0]
+    # mean grey of every whole frame (each band's focus is normalised by its frame's)
+    means: dict[int, float] = {}
 
     def read(i: int) -> np.ndarray:
         image = stack.read_frame(i)
         gray = to_gray(image)
+        means[i] = mean = float(gray.mean())
         if auto:
-            mean = float(gray.mean())
             powers[i] = band_powers(gray * np.float32(MEAN_GREY / mean) if mean > 0 else gray)
         if cached[0] + image.nbytes <= FRAME_CACHE_BYTES:
             cache[i] = image
@@ -148,6 +156,67 @@ def reconstruct(
         log.info("focus pre-filter σ %.2f px (band modulation %s)", sigma, modulation)
     else:
         sigma, modulation = float(config.prefilter_px), None
+    try:
+        frame0 = cache.get(0)
+        if frame0 is None:  # decoded here once, for its size; the first band takes it
+            frame0 = cache[0] = stack.read_frame(0)
+    except BaseException:
+        pool.shutdown(cancel_futures=True)
+        raise
+    shape = alignment.shape if alignment is not None else frame0.shape[:2]
+    if min(shape) < config.window_px:  # as focus_measure says it
+        pool.shutdown(cancel_futures=True)
+        raise InputError(f"window_px must be <= the frame's smaller side ({min(shape)} px for "
+                         f"a {shape[0]}x{shape[1]} frame); got {config.window_px}")
+    bands = _bands(shape, config)
+    run = _Run(stack=stack, config=config, pool=pool, alignment=alignment, sigma=sigma,
+               cache=cache, means=means, shape=shape, frame_shape=frame0.shape,
+               # what every band must share: the coarse levels and the choices made
+               # from the data, taken from the first band measured (the middle one)
+               decided={"coarse_factors": _coarse_factors(config, shape),
+                        "halo_cap_px": min(shape) // 4})
+    del frame0
+    if len(bands) > 1:
+        log.info("%dx%d px measured in %d bands of rows (at most %.1f Mpixel each, "
+                 "%d px margins)", shape[1], shape[0], len(bands), config.band_mpixels,
+                 BAND_MARGIN_PX)
+    out: dict = {}
+    stats: dict = collections.defaultdict(float)
+    with pool:
+        for k, band in enumerate(sorted(bands, key=lambda b: abs(b[2] + b[3] - shape[0]))):
+            def sub(done: int, total: int, k=k) -> None:
+                progress(k * total + done, len(bands) * total)
+
+            part = _measure(run, band, progress=None if progress is None else sub)
+            lo, hi, core_lo, core_hi = band
+            keep = slice(core_lo - lo, core_hi - lo)
+            for key, plane in part.pop("planes").items():
+                if plane is None:
+                    out[key] = None
+                    continue
+                if key not in out:
+                    out[key] = np.empty((shape[0], *plane.shape[1:]), plane.dtype)
+                out[key][core_lo:core_hi] = plane[keep]
+            for key, value in part.items():
+                stats[key] += value
+            del part
+            release_free_memory()  # the band's planes, before the next band allocates
+    t_stream = stats["t_stream"]
+    return _finish(run, out, stats, bands, t0=t0, t_stream=t_stream, modulation=modulation)
+
+
+def _measure(run: "_Run", band: tuple[int, int, int, int], *,
+             progress: Progress | None) -> dict:
+    """Measure one band of rows ``band = (lo, hi, core_lo, core_hi)`` of the output grid
+    (the whole grid when the frames fit one band): stream its frames, fit and judge its
+    peaks. Returns the band's planes (``"planes"``, rows ``lo .. hi``) and its counts
+    for the summary (see :func:`reconstruct`)."""
+    stack, config, alignment, sigma = run.stack, run.config, run.alignment, run.sigma
+    cache, means, decided = run.cache, run.means, run.decided
+    n = len(stack)
+    z_mm = stack.z_mm
+    lo, hi, _, _ = band
+    rows = None if (lo, hi) == (0, run.shape[0]) else (lo, hi)
     first = stack.frames[0].path
     operator = FocusOperator(config.operator)
     own_px = (config.own_window_px
@@ -171,8 +240,22 @@ def reconstruct(
         image = cache.pop(i, None)
         if image is None:
             image = stack.read_frame(i)
-        gray = to_gray(image)
-        mean = float(gray.mean())
+        if image.shape != run.frame_shape:
+            raise _mismatch(stack.frames[i].path, image.shape, first, run.frame_shape)
+        gray = None
+        mean = means.get(i)
+        if mean is None:
+            gray = to_gray(image)
+            means[i] = mean = float(gray.mean())
+        src = 0  # the first frame row of the band's crop
+        if rows is not None:
+            pad = config.window_px + int(np.ceil(4 * sigma)) + 4
+            src, end = (alignment.source_rows(i, rows, pad) if alignment is not None
+                        else rows)
+            image = image[src:end].copy()  # the whole frame is let go
+            gray = None if gray is None else gray[src:end]
+        if gray is None:
+            gray = to_gray(image)
         # Same mean grey in every frame: exposure drift, flicker and auto-gain change the
         # focus measure, defocus does not change the mean (blur conserves light).
         norm = MEAN_GREY / mean if mean > 0 else 1.0
@@ -193,8 +276,9 @@ def reconstruct(
             mx = my = None
         del gray
         if alignment is not None:
-            if image.shape[:2] != alignment.shape:
-                raise _mismatch(stack.frames[i].path, image.shape, first, alignment.shape)
+            def warp(plane: np.ndarray) -> np.ndarray:
+                return alignment.warp(plane, i, rows=rows, src_row=src)
+
             gain = alignment.scale(i) ** operator.magnification_exponent
             if gain != 1.0 or sigma_i != sigma:
                 # The same texture seen less magnified has steeper derivatives: scale the
@@ -224,21 +308,22 @@ def reconstruct(
                 else:
                     mx, my = (cv2.addWeighted(mx, float(inv[0, 0]), my, float(inv[0, 1]), 0.0),
                               cv2.addWeighted(mx, float(inv[1, 0]), my, float(inv[1, 1]), 0.0))
-                mx, my = alignment.warp(mx, i), alignment.warp(my, i)
-            focus = alignment.warp(focus, i)
+                mx, my = warp(mx), warp(my)
+            focus = warp(focus)
             if own is not None:
-                own = alignment.warp(own, i)
-            image = alignment.warp(image, i)
+                own = warp(own)
+            image = warp(image)
         small = [_CoarseLevel.reduce(focus, f)  # in the worker
-                 for f in _coarse_factors(config, focus.shape)]
+                 for f in decided["coarse_factors"]]
         return image, focus, small, own, (None if mx is None else (mx, my))
 
     tracker: PeakTracker | None = None
     coarse: list[_CoarseLevel] = []
     aif = None
-    ref_shape = None
     depth = config.workers + 2  # frames in flight; bounds memory
-    with pool:
+    pool = run.pool
+    t0 = time.perf_counter()
+    try:
         pending: collections.deque = collections.deque()
         next_i = 0
         for i in range(n):
@@ -246,19 +331,12 @@ def reconstruct(
                 pending.append(pool.submit(load, next_i))
                 next_i += 1
             image, focus, small, own = pending.popleft().result()
-            if ref_shape is None:
-                ref_shape = image.shape
-                if min(image.shape[:2]) < config.window_px:
-                    raise InputError(
-                        f"window_px {config.window_px} is larger than the frames "
-                        f"({image.shape[1]}x{image.shape[0]} px)")
+            if tracker is None:
                 tracker = PeakTracker(image.shape[:2], n, half_width=config.fit_half_width,
                                       sum_focus=moments_wanted)
                 coarse = [_CoarseLevel(image.shape[:2], n, config, f)
-                          for f in _coarse_factors(config, image.shape[:2])]
+                          for f in decided["coarse_factors"]]
                 aif = np.zeros_like(image)
-            elif image.shape != ref_shape:
-                raise _mismatch(stack.frames[i].path, image.shape, first, ref_shape)
             better = tracker.update(i, focus, own=own)
             for level, plane in zip(coarse, small):
                 level.tracker.update(i, plane)
@@ -266,6 +344,10 @@ def reconstruct(
             if progress is not None:
                 progress(i + 1, n)
         del image, focus, small, own, better  # the last frame's planes
+    except BaseException:
+        for future in pending:
+            future.cancel()
+        raise
     t_stream = time.perf_counter() - t0
     release_free_memory()  # the workers' freed frames, before the fit allocates afresh
     centroid = None
@@ -275,13 +357,7 @@ def reconstruct(
     energy = tracker.texture_energy if coarse else None
     tracker.focus_sum = None  # summed into the centroid and the energy
 
-    # a pre-filtered noise is correlated: the noise test must ask for a larger peak
-    noise_gain = 1.0
-    if sigma > 0:
-        noise_gain = max(1.0, noise_focus_spread(operator.value, config.window_px, config.threshold,
-                                                 round(sigma, 3))
-                         / noise_focus_spread(operator.value, config.window_px, config.threshold))
-    curve: dict = {}
+    noise_gain = _noise_gain(config, sigma)
     order_out: dict = {}
     order = None
     if config.blur_order_ratio > 0:
@@ -289,23 +365,27 @@ def reconstruct(
             """The blur-order check's second pass over the (aligned) frames."""
             def read_reduced(i: int) -> np.ndarray:
                 image = stack.read_frame(i)
-                return reduce_frame(alignment.warp(image, i) if alignment is not None else image)
+                if alignment is not None:
+                    src = 0
+                    if rows is not None:
+                        src, end = alignment.source_rows(i, rows, 2)
+                        image = image[src:end]
+                    return reduce_frame(alignment.warp(image, i, rows=rows, src_row=src))
+                return reduce_frame(image if rows is None else image[lo:hi])
 
             with ThreadPoolExecutor(max_workers=config.workers,
                                     thread_name_prefix="sff-order") as again:
                 return blur_order_suspect(_prefetch(read_reduced, n, again, depth=config.workers),
                                           n, best_idx, box_px=config.window_px + 6,
-                                          ratio=config.blur_order_ratio)
+                                          ratio=config.blur_order_ratio,
+                                          floors=decided.setdefault("order_floors", {}))
     fit, confidence, halo, beyond, precision = _level(
         tracker, z_mm, config, window_px=config.window_px, halo_radius_px=config.window_px + 2,
-        noise_gain=noise_gain, own_px=own_px, curve_out=curve, order=order, order_out=order_out)
-    meta: dict = {"curve_power": curve} if curve else {}
-    if order_out:
-        meta["blur_order"] = order_out
+        noise_gain=noise_gain, own_px=own_px, decided=decided, grid_rows=(lo, run.shape[0]),
+        order=order, order_out=order_out)
     field = np.ones(tracker.shape, bool)
     if alignment is not None:
-        field = alignment.field
-        meta["alignment"] = alignment.summary()
+        field = alignment.field if rows is None else alignment.field[lo:hi]
     confidence[~field] = 0.0
     height = fit.coarse_mm if config.fit == FitMethod.ARGMAX else fit.height_mm
     if centroid is not None:
@@ -319,7 +399,7 @@ def reconstruct(
         before_h, before_c, before_p = height, confidence, precision
         height, confidence, use, precision = level.merge(
             height, confidence, halo, field, z_mm, config, noise_gain=noise_gain,
-            energy=energy, precision=precision)
+            energy=energy, precision=precision, decided=decided)
         if filled and use.any() and config.edge_jump_steps > 0:
             # a second coarse level's window spans whole parts: where its fills meet a
             # height step, the fill is the suspect, not the finer level's pixels
@@ -333,16 +413,15 @@ def reconstruct(
             use &= ~near
         filled.append(use)
     del energy
-    if coarse:
-        meta["coarse_fraction"] = round(float(sum(int(u.sum()) for u in filled) / height.size), 4)
-        meta["coarse_fractions"] = {str(lv.factor): round(float(u.mean()), 4)
-                                    for lv, u in zip(coarse, filled)}
+    _, _, core_lo, core_hi = band
+    core = slice(core_lo - lo, core_hi - lo)
+    stats = {f"coarse/{lv.factor}": float(np.count_nonzero(u[core]))
+             for lv, u in zip(coarse, filled)}
     if alignment is not None and not alignment.trusted:
         # a wrong registration puts a frame's focus on the wrong pixels: a height is only
         # as good as the alignment of the frames around its peak
+        # (the warnings: _finish)
         if alignment.checks and not alignment.verified_spans:
-            log.warning("the frames' alignment could not be verified (no span of the sweep "
-                        "registered directly): every height is marked unreliable")
             confidence[:] = 0.0
             beyond[:] = 0
         else:
@@ -351,10 +430,8 @@ def reconstruct(
             bad = np.zeros(height.shape, bool)
             for i, j in alignment.inconsistent:
                 bad |= (pos >= i - k) & (pos <= j + k)
-            log.warning("the frames' alignment disagrees with direct registrations over "
-                        "frames %s: the %.1f %% of heights that peak there are marked "
-                        "unreliable", ", ".join(f"{i}-{j}" for i, j in alignment.inconsistent),
-                        100 * (bad & (confidence >= config.min_confidence)).mean())
+            stats["misaligned"] = float(np.count_nonzero(
+                (bad & (confidence >= config.min_confidence))[core]))
             confidence[bad] = 0.0
     if config.edge_jump_steps > 0:
         jump = config.edge_jump_steps * stack.step_mm
@@ -377,7 +454,70 @@ def reconstruct(
                 height, reliable, distance_px=level.window_px, tol_mm=tol))
         confidence[lonely] = 0.0
         reliable &= ~lonely
-    f_peak, sigma_mm, reliability_db = fit.f_peak, fit.sigma_mm, fit.reliability_db
+    for key in ("flagged", "judged"):  # counted over the band's margins too
+        if f"_{key}" in order_out:
+            stats[f"order/{key}"] = order_out[f"_{key}"]
+    if "order" not in decided and order_out:
+        decided["order"] = {k: v for k, v in order_out.items() if not k.startswith("_")}
+    stats["t_stream"] = t_stream
+    stats["planes"] = {
+        "height": height, "confidence": confidence, "reliable": reliable, "f_peak": fit.f_peak,
+        "sigma_mm": fit.sigma_mm, "reliability_db": fit.reliability_db, "aif": aif,
+        "beyond": beyond, "precision": precision}
+    return stats
+
+
+def _noise_gain(config: FocusConfig, sigma: float) -> float:
+    """A pre-filtered noise is correlated: the noise test must ask for a larger peak
+    (the ratio of the noise focus spreads with and without the pre-filter, ≥ 1)."""
+    if sigma <= 0:
+        return 1.0
+    op = FocusOperator(config.operator).value
+    return max(1.0, noise_focus_spread(op, config.window_px, config.threshold, round(sigma, 3))
+               / noise_focus_spread(op, config.window_px, config.threshold))
+
+
+def _finish(run: "_Run", planes: dict, stats: dict, bands: list, *, t0: float,
+            t_stream: float, modulation) -> Surface:
+    """The whole grid's measurement from its bands' planes: the alignment's parallax
+    correction, the field beyond the sweep, the summary; the :class:`Surface`."""
+    stack, config, alignment, sigma = run.stack, run.config, run.alignment, run.sigma
+    n, z_mm = len(stack), stack.z_mm
+    height, confidence, reliable, f_peak, sigma_mm, reliability_db, aif, beyond, precision = (
+        planes[key] for key in ("height", "confidence", "reliable", "f_peak", "sigma_mm",
+                                "reliability_db", "aif", "beyond", "precision"))
+    decided = run.decided
+    meta: dict = {}
+    if "curve" in decided:
+        meta["curve_power"] = decided["curve"]
+    if "order" in decided:
+        order = dict(decided["order"])
+        if "order/judged" in stats:
+            order["flagged_of_reliable"] = round(
+                stats["order/flagged"] / max(stats["order/judged"], 1.0), 5)
+        meta["blur_order"] = order
+    field = np.ones(run.shape, bool)
+    if alignment is not None:
+        field = alignment.field
+        meta["alignment"] = alignment.summary()
+        if not alignment.trusted:
+            if alignment.checks and not alignment.verified_spans:
+                log.warning("the frames' alignment could not be verified (no span of the "
+                            "sweep registered directly): every height is marked unreliable")
+            else:
+                log.warning("the frames' alignment disagrees with direct registrations over "
+                            "frames %s: the %.1f %% of heights that peak there are marked "
+                            "unreliable",
+                            ", ".join(f"{i}-{j}" for i, j in alignment.inconsistent),
+                            100 * stats["misaligned"] / height.size)
+    factors = decided["coarse_factors"]
+    if factors:
+        meta["coarse_fraction"] = round(sum(stats[f"coarse/{f}"] for f in factors)
+                                        / height.size, 4)
+        meta["coarse_fractions"] = {str(f): round(stats[f"coarse/{f}"] / height.size, 4)
+                                    for f in factors}
+    if len(bands) > 1:
+        meta["bands"] = {"rows": [[b[2], b[3]] for b in bands], "margin_px": BAND_MARGIN_PX}
     pixel_size = stack.pixel_size_mm
     if alignment is not None:
         sources, info = alignment.parallax_sources(z_mm, height, reliable)
@@ -397,17 +537,17 @@ def reconstruct(
     beyond = np.where(field & ~reliable, beyond, 0).astype(np.int8)
     meta["beyond_sweep"] = _beyond_sweep(beyond, field, z_mm)
     t_total = time.perf_counter() - t0
-    h, w = tracker.shape
+    h, w = run.shape
     meta.update({
         "frames": n,
         "image_size_px": [w, h],
-        "channels": 1 if len(ref_shape) == 2 else ref_shape[2],
+        "channels": 1 if len(run.frame_shape) == 2 else run.frame_shape[2],
         "dtype": str(aif.dtype),
         "step_mm": stack.step_mm,
         "z_range_mm": [float(z_mm[0]), float(z_mm[-1])],
         "config": config.to_dict(),
         "prefilter": {"sigma_px": round(sigma, 3), "band_modulation": modulation,
-                      "noise_test_gain": round(noise_gain, 3)},
+                      "noise_test_gain": round(_noise_gain(config, sigma), 3)},
         "seconds": {"stream": round(t_stream, 4), "total": round(t_total, 4)},
         "mpixel_per_s": round(n * h * w / 1e6 / t_total, 2),
     })
@@ -428,6 +568,44 @@ def reconstruct(
         precision_mm=None if precision is None else precision * np.float32(abs(stack.step_mm)),
         meta=meta,
     )
+
+
+@dataclasses.dataclass
+class _Run:
+    """What every band of one :func:`reconstruct` shares."""
+
+    stack: FocalStack
+    config: FocusConfig
+    pool: ThreadPoolExecutor
+    alignment: Alignment | None
+    sigma: float  # the pre-filter's σ (reference pixels)
+    cache: dict  # frames decoded before the main pass, taken by the first band
+    means: dict  # every whole frame's mean grey
+    shape: tuple[int, int]  # the output grid
+    frame_shape: tuple[int, ...]  # the first frame's (every frame's) array shape
+    decided: dict  # choices made once from the data (see reconstruct)
+
+
+def _bands(shape: tuple[int, int], config: FocusConfig) -> list[tuple[int, int, int, int]]:
+    """Bands of rows ``(lo, hi, core_lo, core_hi)`` covering a grid of ``shape``: each
+    band measures rows ``lo .. hi`` (its core and :data:`BAND_MARGIN_PX` either side)
+    and keeps ``core_lo .. core_hi``, at most :attr:`FocusConfig.band_mpixels` a band.
+    Cores start on multiples of :data:`BAND_ALIGN_PX` (the coarse levels' blocks line up
+    with the whole grid's). One band, the whole grid, when it fits."""
+    h, w = shape
+    limit = config.band_mpixels * 1e6
+    if not limit or h * w <= limit:
+        return [(0, h, 0, h)]
+    rows = int(limit // w) - 2 * BAND_MARGIN_PX
+    rows = max(BAND_MARGIN_PX, rows // BAND_ALIGN_PX * BAND_ALIGN_PX)
+    count = -(-h // rows)
+    rows = -(-h // count // BAND_ALIGN_PX) * BAND_ALIGN_PX  # even bands
+    out = []
+    for core_lo in range(0, h, rows):
+        core_hi = min(h, core_lo + rows)
+        out.append((max(0, core_lo - BAND_MARGIN_PX), min(h, core_hi + BAND_MARGIN_PX),
+                    core_lo, core_hi))
+    return out
 
 
 def _beyond_sweep(beyond: np.ndarray, field: np.ndarray, z_mm: np.ndarray) -> dict:
@@ -492,7 +670,8 @@ def _prefetch(read: Callable[[int], np.ndarray], n: int, pool: ThreadPoolExecuto
 
 def _level(tracker: PeakTracker, z_mm: np.ndarray, config: FocusConfig, *, window_px: int,
            halo_radius_px: int, noise_gain: float = 1.0, own_px: int = 0,
-           curve_out: dict | None = None, grid_factor: int = 1,
+           decided: dict | None = None, grid_factor: int = 1,
+           grid_rows: tuple[int, int] | None = None,
            order: Callable[[np.ndarray], np.ndarray] | None = None,
            order_out: dict | None = None):
     """Fit one level's peaks and judge them: (fit, confidence, halo mask, beyond,
@@ -505,23 +684,35 @@ def _level(tracker: PeakTracker, z_mm: np.ndarray, config: FocusConfig, *, windo
     ``own_px`` window's focus) and, with ``order`` (best frames → suspect mask, a pass
     over the frames), the peaks on a frame that is a blur of its neighbour's
     (:func:`~smdinspect.sff._blur_order.blur_order_suspect`; run only where the blur per frame κ
-    reaches the smallest blur the check tries; ``order_out`` gets the figures). With
-    ``curve_out`` (a dict, filled with the choice) the heights use
-    :attr:`FocusConfig.fit_power` (:func:`select_curve_power` for "auto").
+    reaches the smallest blur the check tries; ``order_out`` gets the figures). The
+    fine level's (``grid_factor`` 1) heights use :attr:`FocusConfig.fit_power`
+    (:func:`select_curve_power` for "auto").
+
+    ``decided`` holds what is chosen from the data once for every band of a grid
+    measured in bands (:func:`_bands`): the first band to need a choice makes it (the
+    curve power, each level's blur per frame κ and typical peak width), the others
+    take it; without it every choice is this call's own. ``grid_rows`` (first, height):
+    the tracker holds rows ``first ..`` of a grid ``height`` rows high (fine level).
     """
+    decided = {} if decided is None else decided
     tracker.finish()
     power = FocusOperator(config.operator).curve_power
     fit = fit_peaks(tracker, z_mm, method=config.fit, workers=config.workers, power=power)
-    if curve_out is not None and config.fit == FitMethod.POWER and config.fit_power is not None:
+    if grid_factor == 1 and config.fit == FitMethod.POWER and config.fit_power is not None:
         # the heights from the curve shape of this sweep; the confidence cues stay on the
         # operator's model, which their thresholds were set on
-        if config.fit_power == "auto":
-            chosen, scores = select_curve_power(tracker, z_mm, power=power)
-            curve_out.update(power=round(chosen, 3),
-                             scores={str(round(q, 3)): round(v, 4) for q, v in scores.items()})
-        else:
-            chosen = float(config.fit_power)
-            curve_out.update(power=chosen)
+        if "curve" not in decided:
+            if config.fit_power == "auto":
+                chosen, scores = select_curve_power(tracker, z_mm, power=power,
+                                                    grid_rows=grid_rows)
+                decided["curve"] = {
+                    "power": round(chosen, 3),
+                    "scores": {str(round(q, 3)): round(v, 4) for q, v in scores.items()}}
+            else:
+                chosen = float(config.fit_power)
+                decided["curve"] = {"power": chosen}
+            decided["power"] = chosen
+        chosen = decided["power"]
         if abs(chosen / power - 1) > 0.05:
             height, interior = fit_peaks(tracker, z_mm, method=config.fit,
                                          workers=config.workers, power=chosen,
@@ -536,13 +727,19 @@ def _level(tracker: PeakTracker, z_mm: np.ndarray, config: FocusConfig, *, windo
         box = max(3, int(round(PRECISION_BOX_WINDOWS * window_px / grid_factor)) | 1)
         precision = precision_steps(fit.split_steps, box_px=box)
     cues = confidence_cues(fit, window_px=window_px, noise_spread_gain=noise_gain,
-                           precision=precision if config.precision_check else None)
+                           precision=precision if config.precision_check else None,
+                           memo=decided.setdefault(f"cues/{grid_factor}", {}))
     confidence = confidence_map(fit, window_px=window_px, cues=cues)
     cues = {key: cues[key] for key in ("noise", "second_mode")}  # the others are spent
     first, last = fit.best_idx == 0, fit.best_idx == len(z_mm) - 1
     halo = np.zeros(tracker.shape, bool)
-    kappa = (blur_px_per_frame(fit, confidence >= config.min_confidence, power=power)
-             if config.halo_ratio > 0 or order is not None else 0.0)
+    kappa = 0.0
+    if config.halo_ratio > 0 or order is not None:
+        key = f"kappa/{grid_factor}"
+        if key not in decided:
+            decided[key] = blur_px_per_frame(fit, confidence >= config.min_confidence,
+                                             power=power)
+        kappa = decided[key]
     if config.halo_ratio > 0:
         frame_pos = np.interp(fit.height_mm, z_mm, np.arange(len(z_mm), dtype=np.float64))
         # a sharp edge whose peak lies on the first or last frame (beyond the sweep)
@@ -550,7 +747,8 @@ def _level(tracker: PeakTracker, z_mm: np.ndarray, config: FocusConfig, *, windo
         halo = defocus_halo_mask(fit.f_best, frame_pos,
                                  (confidence >= config.min_confidence) | first | last,
                                  base_radius_px=halo_radius_px, blur_px_per_frame=kappa,
-                                 ratio=config.halo_ratio, n_frames=len(z_mm), power=power)
+                                 ratio=config.halo_ratio, n_frames=len(z_mm), power=power,
+                                 cap_px=decided.get("halo_cap_px", 0) // grid_factor or None)
     own = tracker.own_share()
     if own is not None and own_px:
         # also where the fine peak is unreliable anyway: the coarse level's wider
@@ -568,7 +766,11 @@ def _level(tracker: PeakTracker, z_mm: np.ndarray, config: FocusConfig, *, windo
         if judged:
             late = order(fit.best_idx) & fit.interior & ~halo
             was = (confidence >= config.min_confidence) & ~halo
-            flagged = float((late & was).sum() / max(int(was.sum()), 1))
+            n_was = int(np.count_nonzero(was))
+            n_late = int(np.count_nonzero(late & was))
+            flagged = n_late / max(n_was, 1)
+            if order_out is not None:
+                order_out.update(_flagged=n_late, _judged=n_was)
             log.info("blur-order check: %.2f %% of the reliable peaks lie on a frame that "
                      "is a blur of its neighbour's: unreliable", 100 * flagged)
             halo |= late
@@ -624,7 +826,7 @@ class _CoarseLevel:
     def merge(self, height: np.ndarray, confidence: np.ndarray, halo: np.ndarray,
               field: np.ndarray, z_mm: np.ndarray, config: FocusConfig, *,
               noise_gain: float = 1.0, energy: np.ndarray | None = None,
-              precision: np.ndarray | None = None):
+              precision: np.ndarray | None = None, decided: dict | None = None):
         """Fill the finer levels' unreliable pixels inside ``field`` (except the fine
         level's ``halo`` pixels) from reliable coarse ones; returns (height, confidence,
         the mask of the pixels filled, ``precision`` (steps) with the filled pixels'
@@ -640,7 +842,8 @@ class _CoarseLevel:
         # the noise test scales with the footprint; the halo radius is the footprint's
         fit, conf, _, _, prec = _level(self.tracker, z_mm, config, window_px=self.window_px,
                                        halo_radius_px=-(-(self.window_px + 2) // self.factor),
-                                       noise_gain=noise_gain, grid_factor=self.factor)
+                                       noise_gain=noise_gain, grid_factor=self.factor,
+                                       decided=decided)
         inside = cv2.resize(field.astype(np.float32), self.small[::-1],
                             interpolation=cv2.INTER_AREA) > 0.999
         ok = (conf >= config.min_confidence) & inside

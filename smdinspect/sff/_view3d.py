@@ -24,7 +24,7 @@ __all__ = ["render_height_field"]
 log = logging.getLogger(__name__)
 
 VIEW_MAX_SIDE = 384  # the rendered mesh is at most this many vertices a side
-TEXTURE_MAX_SIDE = 4096  # the colour texture is downsampled beyond this
+TEXTURE_MAX_SIDE = 2048  # the colour texture is downsampled beyond this (the render is 1280 px wide)
 GREY_RGB = (150, 150, 150)  # pixels without a valid height
 BACKGROUND_TOP = (1.0, 1.0, 1.0)
 BACKGROUND_BOTTOM = (0.86, 0.88, 0.91)
