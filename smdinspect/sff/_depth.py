@@ -383,7 +383,7 @@ def _fit_block(best_idx, window, alternative, best, floor, z_mm, *, k: int,
         if gauss:  # q = −ln y is a parabola for a Gaussian peak
             to_q = lambda v: -np.log(np.maximum(v, tiny))  # noqa: E731
         else:  # q = y^(−1/p) is a parabola for A / (1 + (u − μ)²/γ²)^p
-            to_q = lambda v: np.maximum(v, tiny) ** np.float32(-1.0 / power)  # noqa: E731
+            to_q = lambda v: _pow(np.maximum(v, tiny), -1.0 / power)  # noqa: E731
         # The peak's support: the samples, contiguous with the peak, above
         # SUPPORT_FRACTION of it (always ±1 frame). A real focus curve is a narrow peak
         # on a broad pedestal (coarse texture defocuses slowly): samples on the pedestal
@@ -409,7 +409,7 @@ def _fit_block(best_idx, window, alternative, best, floor, z_mm, *, k: int,
             expo = 2.0 if gauss else 2.0 + 2.0 / power
             q = [to_q(v) for v in y]
             c, b, a = _weighted_parabola(u, q,
-                                         [np.where(m, v ** expo, 0) for m, v in zip(support, y)])
+                                         [np.where(m, _pow(v, expo), 0) for m, v in zip(support, y)])
         shift = -b / (2 * c)  # steps
         q_min = a - b * b / (4 * c)
         if gauss:
@@ -440,7 +440,7 @@ def _fit_block(best_idx, window, alternative, best, floor, z_mm, *, k: int,
         def model(u: np.ndarray) -> np.ndarray:
             """Fitted curve above the floor at offset u (steps) from the peak frame."""
             d2 = (u - offset) ** 2 * cq
-            return amp * (np.exp(-d2) if gauss else (1.0 + d2) ** np.float32(-power))
+            return amp * (np.exp(-d2) if gauss else _pow(1.0 + d2, -power))
 
         # Pertuz's reliability R over the peak's support (the samples the fit used); a
         # support of 3 samples is fitted exactly and says nothing: R = R_EXACT_DB.
@@ -484,6 +484,20 @@ def _fit_block(best_idx, window, alternative, best, floor, z_mm, *, k: int,
         best_idx=best_idx,
         split_steps=split,
     )
+
+
+def _pow(x: np.ndarray, e: float) -> np.ndarray:
+    """``x ** e`` (float32), by products, a square root or a reciprocal for the exponents
+    the default curve shape (p = 2) gives: a float32 power costs ~8x as much."""
+    if e == 3.0:
+        return x * x * x
+    if e == 2.0:
+        return np.square(x)
+    if e == -0.5:
+        return np.float32(1.0) / np.sqrt(x)
+    if e == -2.0:
+        return np.float32(1.0) / np.square(x)
+    return x ** np.float32(e)
 
 
 def _split_difference(u, q, y, support, *, k: int) -> np.ndarray:
