@@ -103,7 +103,7 @@ def _sff_surface(scene, case, tmp: Path):
     stack = render_stack(scene, sweep_mm(case["board"]), optics=optics,
                          lighting=Lighting(**case["lighting"]), seed=case["seed"],
                          out=tmp, previews=False, overwrite=True)
-    cfg = inspection_focus_config()
+    cfg = inspection_focus_config(case["pixel_size_mm"])
     if case["lens"] == "ordinary":
         cfg = dataclasses.replace(cfg, align=True)
     return reconstruct(stack, cfg)

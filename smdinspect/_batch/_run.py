@@ -250,7 +250,7 @@ def run_batch(
     """
     from .. import __version__
     from ..inspect import InspectConfig, load_board
-    from ..pipeline import inspection_focus_config
+    from ..pipeline import inspection_focus_config, stack_pixel_size
 
     t0 = time.perf_counter()
     if scheduler is not None and dask_workers is not None:
@@ -297,8 +297,8 @@ def run_batch(
     # (LocalCluster: one thread per worker), the local pool splits the CPUs.
     if threads is None:
         threads = 1 if on_dask else max(1, (os.cpu_count() or 1) // pool_size)
-    if focus_config is None:
-        focus_config = inspection_focus_config()
+    if focus_config is None:  # one rig: the first stack's pixel size sets the window
+        focus_config = inspection_focus_config(stack_pixel_size(stacks[0][1]))
     focus_config = dataclasses.replace(focus_config, workers=threads)
     if inspect_config is None:
         inspect_config = InspectConfig()

@@ -83,7 +83,8 @@ def register(sub: argparse._SubParsersAction) -> None:
     f.add_argument("--operator", default=None, choices=OPERATORS, metavar="OP",
                    help="focus measure (default sml)")
     f.add_argument("--window-px", type=int, default=None,
-                   help="focus window side, odd (default: the inspection's, 5)")
+                   help="focus window side, odd (default: the inspection's, about 70 µm of "
+                        "the board and at least 5 px, from the first stack's pixel size)")
     f.add_argument("--fit", default=None, choices=["power", "gauss3", "lsq", "argmax"],
                    help="peak model (default power)")
     f.add_argument("--fit-half-width", type=int, default=None,
@@ -138,7 +139,14 @@ def run(args: argparse.Namespace) -> int:
              if getattr(args, k) is not None}
     if args.prefilter is not None:
         given["prefilter_px"] = prefilter_value(args.prefilter)
-    focus = dataclasses.replace(inspection_focus_config(), **given)
+    pixel = None
+    if "window_px" not in given:  # one rig: the first stack's pixel size sets the window
+        from ..batch import discover_stacks
+        from ..pipeline import stack_pixel_size
+
+        found = discover_stacks(args.stacks_dir) if Path(args.stacks_dir).is_dir() else []
+        pixel = stack_pixel_size(found[0][1]) if found else None
+    focus = dataclasses.replace(inspection_focus_config(pixel), **given)
     bar = BatchProgress(disable=bool(args.quiet))
     try:
         res = run_batch(args.stacks_dir, args.board, args.out, workers=args.processes,

@@ -35,7 +35,6 @@ located in a sweep.
 
 
 def register(sub: argparse._SubParsersAction) -> None:
-    from ..pipeline import inspection_focus_config
     from .reconstruct import add_calibration_argument, add_stack_arguments
 
     p = sub.add_parser(
@@ -80,7 +79,7 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--html", action="store_true", help="write each sweep's report.html")
     add_calibration_argument(p, "to the sweeps inspected here")
     p.add_argument("--no-chart", action="store_true", help="skip grr.png")
-    p.set_defaults(func=run, window_px=inspection_focus_config().window_px)
+    p.set_defaults(func=run, window_px=None)  # from the pixel size (inspection_window_px)
 
 
 def _sweeps(args: argparse.Namespace) -> tuple[list[Path], list[str] | None]:
@@ -124,7 +123,7 @@ def run(args: argparse.Namespace) -> int:
     from ..cli import progress_callback
     from ..errors import InputError
     from ..grr import analyse_grr, inspect_for_grr, read_records, write_grr
-    from ..pipeline import inspection_focus_config
+    from ..pipeline import inspection_focus_config, stack_pixel_size
     from .inspect import inspect_config_from
     from .reconstruct import check_calibration_argument, focus_config_from
 
@@ -136,7 +135,10 @@ def run(args: argparse.Namespace) -> int:
     stacks, operators = _sweeps(args)
     board = load_any_board(args.board)
     check_calibration_argument(args)
-    focus = focus_config_from(args, inspection_focus_config())
+    pixel = args.pixel_size_mm
+    if pixel is None and stacks:  # the sweeps' rig: the first one's stack.json
+        pixel = stack_pixel_size(stacks[0])
+    focus = focus_config_from(args, inspection_focus_config(pixel))
     config = inspect_config_from(args)
     found = inspect_for_grr(stacks, board, args.out, focus_config=focus, inspect_config=config,
                             pixel_size_mm=args.pixel_size_mm, html=args.html,

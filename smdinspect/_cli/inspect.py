@@ -15,7 +15,6 @@ log = logging.getLogger(__name__)
 
 def register(sub: argparse._SubParsersAction) -> None:
     from ..inspect._config import InspectConfig
-    from ..pipeline import inspection_focus_config
     from .reconstruct import add_calibration_argument, add_stack_arguments
 
     p = sub.add_parser(
@@ -37,7 +36,7 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--no-html", action="store_true", help="skip report.html")
     add_calibration_argument(p, "before the joints are measured")
     # Inspection focuses with its own, smaller window by default (steep, narrow fillets).
-    p.set_defaults(func=run, window_px=inspection_focus_config().window_px)
+    p.set_defaults(func=run, window_px=None)  # from the pixel size (inspection_window_px)
 
 
 def inspect_config_from(args: argparse.Namespace):
@@ -94,7 +93,7 @@ def run(args: argparse.Namespace) -> int:
     with _atomic.replace_dir(args.out, replaces=RECONSTRUCTION_OUTPUTS + REPORT_FILES
                              + (CFX_FILE,), carry=carry) as tmp:
         try:
-            focus = focus_config_from(args, inspection_focus_config())
+            focus = focus_config_from(args, inspection_focus_config(stack.pixel_size_mm))
             result = inspect_stack(stack, board, tmp, focus_config=focus,
                                    inspect_config=config, keep_unreliable=args.keep_unreliable,
                                    progress=progress_callback(args, "focus"),

@@ -41,7 +41,9 @@ def add_stack_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--operator", default="sml", choices=(*OPERATORS, "auto"), metavar="OP",
                    help="focus measure (default sml; one of: %(choices)s; auto, in "
                         "reconstruct: picked from the stack's texture by the texture study)")
-    p.add_argument("--window-px", type=int, default=9, help="focus window side, odd (default %(default)s)")
+    p.add_argument("--window-px", type=int, default=9,
+                   help="focus window side, odd (default %(default)s; inspect, grr and batch: "
+                        "about 70 µm of the board, at least 5 px)")
     p.add_argument("--fit", default="power", choices=[m.value for m in FitMethod],
                    help="peak model, fitted above the curve's floor (default power: the "
                         "power-law peak of defocused texture; gauss3: Nayar's 3-point "
@@ -91,9 +93,11 @@ def focus_config_from(args: argparse.Namespace, base=None):
 
     if args.operator == "auto":  # reconstruct resolves it first (_cli/study.py)
         raise InputError("--operator auto is only available in smdinspect reconstruct")
-    given = dict(operator=args.operator, window_px=args.window_px, fit=args.fit,
+    given = dict(operator=args.operator, fit=args.fit,
                  fit_half_width=args.fit_half_width, min_confidence=args.min_confidence,
                  align=args.align, workers=args.workers)
+    if args.window_px is not None:  # inspect and grr: else the base's (from the pixel size)
+        given["window_px"] = args.window_px
     if getattr(args, "coarse_levels", None) is not None:  # else the base's (or the default)
         given["coarse_levels"] = args.coarse_levels
     if getattr(args, "band_mpixels", None) is not None:

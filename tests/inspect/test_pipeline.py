@@ -140,11 +140,14 @@ def test_wrong_board_through_the_library(run):
 
 
 @pytest.mark.parametrize("command", ["inspect", "grr"])
-def test_cli_inspection_commands_use_the_inspection_focus_settings(command, tmp_path,
+@pytest.mark.parametrize("pixel_mm, side, window", [(0.02, 800, 5), (0.0075, 2100, 9)])
+def test_cli_inspection_commands_use_the_inspection_focus_settings(command, pixel_mm, side,
+                                                                   window, tmp_path,
                                                                    monkeypatch):
     """`inspect` and `grr` start from inspection_focus_config() (5-px window, no coarse
     level, no support check, halo ratio 8, ...) and replace only what the command line
-    gives; they used to start from the reconstruction defaults but the window."""
+    gives; they used to start from the reconstruction defaults but the window. The
+    window spans about 70 µm of the board: 9 px at 7.5 µm/px."""
     import dataclasses
 
     import smdinspect.pipeline as pipeline
@@ -160,15 +163,26 @@ def test_cli_inspection_commands_use_the_inspection_focus_settings(command, tmp_
     rng = np.random.default_rng(0)
     stacks = []
     for k in range(2 if command == "grr" else 1):
-        w = StackWriter(tmp_path / f"s{k}", pixel_size_mm=0.02)
+        w = StackWriter(tmp_path / f"s{k}", pixel_size_mm=pixel_mm)
         for z in (0.0, 0.05, 0.1):
-            w.add_frame(rng.integers(0, 255, (800, 800), dtype=np.uint8), z)
+            w.add_frame(rng.integers(0, 255, (side, side), dtype=np.uint8), z)
         w.write_manifest()
         stacks.append(str(tmp_path / f"s{k}"))
     code = main(["-q", command, *stacks, "--board", str(DEMO), "--out", str(tmp_path / "o"),
                  "--align"])
     assert code not in (0, 1) and seen  # stopped inside the fake, after the config was made
-    assert seen[0] == dataclasses.replace(pipeline.inspection_focus_config(), align=True)
+    assert seen[0] == dataclasses.replace(pipeline.inspection_focus_config(pixel_mm), align=True)
+    assert seen[0].window_px == window
+
+
+@pytest.mark.parametrize("pixel_mm, window", [(None, 5), (0.02, 5), (0.015, 5), (0.0127, 5),
+                                              (0.011, 7), (0.01, 7), (0.0075, 9), (0.005, 15)])
+def test_inspection_window_spans_about_70_um_of_the_board(pixel_mm, window):
+    from smdinspect.pipeline import inspection_focus_config, inspection_window_px
+
+    assert inspection_window_px(pixel_mm) == window
+    assert inspection_focus_config(pixel_mm).window_px == window
+    assert inspection_focus_config(pixel_mm).own_window_px == 3
 
 
 def test_inspection_applies_a_rig_calibration_once(run, tmp_path):

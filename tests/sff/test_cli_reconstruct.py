@@ -102,6 +102,7 @@ def _small_stack(root, n=4, shape=(24, 24)):
         (lambda r: _small_stack(r, n=2), [], "at least 3 frames"),
         (lambda r: _small_stack(r), ["--window-px", "4"], "window_px must be an odd integer"),
         (lambda r: _small_stack(r), ["--window-px", "31"], "window_px must be <="),
+        (lambda r: _small_stack(r), ["--band-mpixels", "0.1"], "band_mpixels must be 0"),
         (lambda r: _small_stack(r), ["--operator", "nope"], None),  # argparse: exit 2
         (lambda r: (_small_stack(r), (r / "frame_0002.png").write_bytes(b"\x89PNG\r\n\x1a\nxx")),
          [], "truncated"),
