@@ -580,7 +580,8 @@ def _weighted_parabola(u: list[np.ndarray], q: list[np.ndarray], wt: list[np.nda
     m01 = s1 * s4 - s2 * s3
     m02 = s1 * s3 - s2 * s2
     det = s0 * m00 - s1 * m01 + s2 * m02
-    ok = (count >= 3) & (np.abs(det) > 1e-9 * np.maximum(s0, 1e-300) ** 3)
+    s0c = np.maximum(s0, 1e-300)
+    ok = (count >= 3) & (np.abs(det) > 1e-9 * (s0c * s0c * s0c))  # a product, not a pow
     det = np.where(ok, det, 1.0)
     scale = q_ref.astype(np.float64) / det
     a = (t0 * m00 - s1 * (t1 * s4 - s3 * t2) + s2 * (t1 * s3 - s2 * t2)) * scale
