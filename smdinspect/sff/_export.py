@@ -89,9 +89,9 @@ def write_point_cloud(surface: Surface, path: str | Path, *, keep_unreliable: bo
                                          ("green", "u1"), ("blue", "u1"), ("confidence", "<f4"),
                                          ("precision", "<f4")])
     p = 1.0 if surface.pixel_size_mm is None else float(surface.pixel_size_mm)
-    planes = [(("z",), surface.height_mm), (("confidence",), surface.confidence)]
+    planes = [("z", surface.height_mm), ("confidence", surface.confidence)]
     if surface.precision_mm is not None:
-        planes.append((("precision",), surface.precision_mm))
+        planes.append(("precision", surface.precision_mm))
     else:
         vertex["precision"] = np.nan
     for a in range(0, len(index), CLOUD_CHUNK):  # chunks: no full-length temporaries
@@ -100,7 +100,7 @@ def write_point_cloud(surface: Surface, path: str | Path, *, keep_unreliable: bo
         rows, cols = np.divmod(at, w)
         part["x"] = cols * p
         part["y"] = (h - 1 - rows) * p
-        for (name,), plane in planes:
+        for name, plane in planes:
             part[name] = plane.ravel()[at]
         rgb = _rgb8(surface.aif, at)
         for i, channel in enumerate(("red", "green", "blue")):

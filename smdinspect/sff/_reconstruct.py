@@ -73,7 +73,10 @@ def reconstruct(
 
     Frames are decoded and their focus measures computed in ``config.workers`` threads;
     the per-pixel peak state is updated in frame order. Memory is constant in the number
-    of frames (see :class:`smdinspect.sff.PeakTracker`).
+    of frames (see :class:`smdinspect.sff.PeakTracker`). Frames larger than
+    :attr:`FocusConfig.band_mpixels` are measured in bands of rows, one after the other
+    (:func:`_bands`; the choices made from the data are made once and shared, and
+    ``summary.json`` → ``bands`` lists the bands): memory follows the band.
 
     Parameters
     ----------
