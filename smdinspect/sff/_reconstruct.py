@@ -204,8 +204,7 @@ def reconstruct(
                 stats[key] += value
             del part
             release_free_memory()  # the band's planes, before the next band allocates
-    t_stream = stats["t_stream"]
-    return _finish(run, out, stats, bands, t0=t0, t_stream=t_stream, modulation=modulation)
+    return _finish(run, out, stats, bands, t0=t0, modulation=modulation)
 
 
 def _measure(run: "_Run", band: tuple[int, int, int, int], *,
@@ -218,7 +217,7 @@ def _measure(run: "_Run", band: tuple[int, int, int, int], *,
     cache, means, decided = run.cache, run.means, run.decided
     n = len(stack)
     z_mm = stack.z_mm
-    lo, hi, _, _ = band
+    lo, hi, core_lo, core_hi = band
     rows = None if (lo, hi) == (0, run.shape[0]) else (lo, hi)
     first = stack.frames[0].path
     operator = FocusOperator(config.operator)
@@ -252,9 +251,10 @@ def _measure(run: "_Run", band: tuple[int, int, int, int], *,
             means[i] = mean = float(gray.mean())
         src = 0  # the first frame row of the band's crop
         if rows is not None:
-            pad = config.window_px + int(np.ceil(4 * sigma)) + 4
-            src, end = (alignment.source_rows(i, rows, pad) if alignment is not None
-                        else rows)
+            src, end = rows
+            if alignment is not None:  # the frame rows the band is resampled from
+                src, end = alignment.source_rows(
+                    i, rows, pad=config.window_px + int(np.ceil(4 * sigma)) + 4)
             image = image[src:end].copy()  # the whole frame is let go
             gray = None if gray is None else gray[src:end]
         if gray is None:
@@ -416,7 +416,6 @@ def _measure(run: "_Run", band: tuple[int, int, int, int], *,
             use &= ~near
         filled.append(use)
     del energy
-    _, _, core_lo, core_hi = band
     core = slice(core_lo - lo, core_hi - lo)
     stats = {f"coarse/{lv.factor}": float(np.count_nonzero(u[core]))
              for lv, u in zip(coarse, filled)}
@@ -481,7 +480,7 @@ def _noise_gain(config: FocusConfig, sigma: float) -> float:
 
 
 def _finish(run: "_Run", planes: dict, stats: dict, bands: list, *, t0: float,
-            t_stream: float, modulation) -> Surface:
+            modulation) -> Surface:
     """The whole grid's measurement from its bands' planes: the alignment's parallax
     correction, the field beyond the sweep, the summary; the :class:`Surface`."""
     stack, config, alignment, sigma = run.stack, run.config, run.alignment, run.sigma
@@ -551,7 +550,7 @@ def _finish(run: "_Run", planes: dict, stats: dict, bands: list, *, t0: float,
         "config": config.to_dict(),
         "prefilter": {"sigma_px": round(sigma, 3), "band_modulation": modulation,
                       "noise_test_gain": round(_noise_gain(config, sigma), 3)},
-        "seconds": {"stream": round(t_stream, 4), "total": round(t_total, 4)},
+        "seconds": {"stream": round(stats["t_stream"], 4), "total": round(t_total, 4)},
         "mpixel_per_s": round(n * h * w / 1e6 / t_total, 2),
     })
     log.info("reconstructed %d frames of %dx%d px in %.2f s (%.1f Mpixel/s), coverage %.1f%%",
