@@ -19,8 +19,8 @@ Then our own renderer:
   pixels, in steps;
 * randomised boards (``random_board_case``, test seeds 10000-10003 on the demo and dense
   boards: defects, finishes, lighting, placements, one lens in four ordinary with
-  --align): coverage and RMSE on reliable pixels, worst and pooled (goal RMSE
-  <= 0.5 Δd at >= 85 % coverage) and the share of reliable pixels off by more than 1 Δd;
+  --align, each with its own pupil, in-focus blur and sensor): coverage and RMSE on
+  reliable pixels, worst and pooled (goal RMSE <= 0.5 Δd at >= 85 % coverage) and the share of reliable pixels off by more than 1 Δd;
 * defect-free boards through the whole pipeline (reconstruct + inspect): median of
   measured − true max joint height, chips and gull-wings apart.
 
@@ -184,7 +184,7 @@ def random_boards(tmp: Path, seeds=range(10000, 10004)) -> None:
     """SFF-level accuracy on randomised boards (test seeds, never tuned on)."""
     from smdinspect.inspect import load_board
     from smdinspect.synth import Lighting
-    from smdinspect.synth._board_scene import random_board_case, scene_kwargs
+    from smdinspect.synth._board_scene import case_imaging, random_board_case, scene_kwargs
 
     rows, sq, n_rel, n_all, n_far = [], 0.0, 0, 0, 0
     for name in ("demo_board", "dense_board"):
@@ -192,10 +192,9 @@ def random_boards(tmp: Path, seeds=range(10000, 10004)) -> None:
         for seed in seeds:
             case = random_board_case(board, seed)
             scene, _ = board_scene(case["board"], **scene_kwargs(case))
-            optics = Optics.for_pixel_size(case["pixel_size_mm"],
-                                           telecentric=case["lens"] == "telecentric")
+            optics, sensor = case_imaging(case)
             stack = render_stack(scene, _sweep(float(scene.height_mm.max())), optics=optics,
-                                 lighting=Lighting(**case["lighting"]), seed=seed,
+                                 sensor=sensor, lighting=Lighting(**case["lighting"]), seed=seed,
                                  out=tmp / f"{name}-{seed}", previews=False)
             s = reconstruct(stack, FocusConfig(align=case["lens"] == "ordinary"))
             e = _errors(s, scene.height_mm)

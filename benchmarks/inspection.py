@@ -6,7 +6,10 @@ half the components carry one defect at a severity drawn over a realistic range 
 the cap, bridges of varied width and height, shifted and turned parts, missing solder),
 on ENIG, HASL or OSP finishes, with or without fiducials, varied lighting, one case in
 four seen through an ordinary lens (reconstructed with alignment), one in four cut by
-the field edge.
+the field edge, each with its own imaging: a pupil 0.35-1.4 times the default (depth of
+field 0.06-0.23 mm at 20 um/px), in-focus blur 0.2-0.8 px, a sensor from bright and quiet to small pixels
+in poor light, flicker and stage wobble (``--fixed-imaging``: the default optics and
+sensor on every board, the suite before 2026-12-04).
 
 Seeds: ``--seeds tuning`` draws from 0–999 (develop the rules on these),
 ``--seeds test`` from 10000–10999 (the reported figures; never tune on them).
@@ -53,6 +56,7 @@ from smdinspect.synth._board_scene import (  # noqa: E402
     TEST_SEEDS,
     TUNING_SEEDS,
     board_scene,
+    case_imaging,
     random_board_case,
     scene_kwargs,
 )
@@ -90,7 +94,7 @@ def _truth_surface(scene, seed: int):
                    z_mm=np.arange(-0.15, 1.8, STEP_MM))
 
 
-def _sff_surface(scene, case, tmp: Path):
+def _sff_surface(scene, case, tmp: Path, *, fixed_imaging: bool = False):
     import dataclasses
 
     from smdinspect.optics import Optics
@@ -98,9 +102,13 @@ def _sff_surface(scene, case, tmp: Path):
     from smdinspect.sff import reconstruct
     from smdinspect.synth import Lighting, render_stack
 
-    optics = Optics.for_pixel_size(case["pixel_size_mm"],
-                                   telecentric=case["lens"] == "telecentric")
-    stack = render_stack(scene, sweep_mm(case["board"]), optics=optics,
+    if fixed_imaging:
+        optics = Optics.for_pixel_size(case["pixel_size_mm"],
+                                       telecentric=case["lens"] == "telecentric")
+        sensor = None
+    else:
+        optics, sensor = case_imaging(case)
+    stack = render_stack(scene, sweep_mm(case["board"]), optics=optics, sensor=sensor,
                          lighting=Lighting(**case["lighting"]), seed=case["seed"],
                          out=tmp, previews=False, overwrite=True)
     cfg = inspection_focus_config(case["pixel_size_mm"])
@@ -109,17 +117,19 @@ def _sff_surface(scene, case, tmp: Path):
     return reconstruct(stack, cfg)
 
 
-def run_case(name: str, seed: int, mode: str, tmp: Path, cache: Path | None = None) -> dict:
+def run_case(name: str, seed: int, mode: str, tmp: Path, cache: Path | None = None, *,
+             fixed_imaging: bool = False) -> dict:
     board = load_board(BOARDS[name])
     case = random_board_case(board, seed)
     scene, labels = board_scene(case["board"], **scene_kwargs(case))
-    kept = None if cache is None or mode != "sff" else cache / f"{name}-{seed}.pkl"
+    tag = "-fixed" if fixed_imaging else ""
+    kept = None if cache is None or mode != "sff" else cache / f"{name}-{seed}{tag}.pkl"
     if kept is not None and kept.exists():
         surface = pickle.loads(kept.read_bytes())
     elif mode == "truth":
         surface = _truth_surface(scene, seed)
     else:
-        surface = _sff_surface(scene, case, tmp / f"{name}-{seed}")
+        surface = _sff_surface(scene, case, tmp / f"{name}-{seed}", fixed_imaging=fixed_imaging)
         if kept is not None:
             kept.parent.mkdir(parents=True, exist_ok=True)
             part = kept.with_suffix(".part")
@@ -297,6 +307,10 @@ def main(argv=None) -> int:
                     help="keep each board's reconstructed surface here and reuse it on the next "
                          "run (to try verdict rules quickly; empty it after changing the SFF "
                          "core or the renderer)")
+    ap.add_argument("--fixed-imaging", action="store_true",
+                    help="render every board with the default optics and sensor instead of the "
+                         "case's drawn pupil, in-focus blur and sensor (the suite before "
+                         "2026-12-04)")
     args = ap.parse_args(argv)
     seeds = TEST_SEEDS if args.seeds == "test" else TUNING_SEEDS
     names = list(BOARDS) if args.board == "both" else [args.board]
@@ -306,7 +320,8 @@ def main(argv=None) -> int:
         for k in range(args.boards):
             for name in names:
                 seed = seeds[args.first + k]
-                cases.append(run_case(name, seed, args.mode, Path(tmp), args.cache))
+                cases.append(run_case(name, seed, args.mode, Path(tmp), args.cache,
+                                           fixed_imaging=args.fixed_imaging))
                 print(f"  {name} seed {seed}: {time.perf_counter() - t0:.0f} s", file=sys.stderr)
     s = summarise(cases)
     print(f"mode {args.mode}, {args.seeds} seeds {seeds[args.first]}..{seeds[args.first + args.boards - 1]}")

@@ -42,7 +42,7 @@ from ..inspect._board import Board, Component, Joint, _pad_axis, load_board
 from ._scene import Scene
 
 __all__ = ["DEFECTS", "FINISHES", "SEVERITY", "board_scene", "board_shape", "parse_defects",
-           "random_board_case", "scene_kwargs", "TEST_SEEDS", "TUNING_SEEDS"]
+           "random_board_case", "case_imaging", "scene_kwargs", "TEST_SEEDS", "TUNING_SEEDS"]
 
 log = logging.getLogger(__name__)
 
@@ -1308,8 +1308,9 @@ def random_board_case(board: Board | str | os.PathLike, seed: int, *,
     partner stays a good joint). The case also draws the pad finish (ENIG, HASL, OSP),
     whether the board has fiducials, the lighting (specular gain, shininess,
     ambient), the lens (one case in four ordinary, reconstructed with alignment), the
-    placement, and in one case in four an image that cuts into the board so parts
-    stand at or across the field edge.
+    placement, in one case in four an image that cuts into the board so parts
+    stand at or across the field edge, and the imaging (depth of field, in-focus blur,
+    sensor noise, flicker and stage wobble).
 
     Returns
     -------
@@ -1319,7 +1320,8 @@ def random_board_case(board: Board | str | os.PathLike, seed: int, *,
         ``fiducials`` (bool), ``lighting`` (keyword arguments of
         :class:`~smdinspect.synth.Lighting`), ``lens`` ("telecentric" or "ordinary"),
         ``offset_mm``, ``rotate_deg``, ``shape`` (H, W), ``edge`` (bool), ``seed``,
-        ``pixel_size_mm``. Use :func:`board_scene` with ``**scene_kwargs(case)``.
+        ``pixel_size_mm``, ``imaging`` (pupil scale, in-focus blur and sensor; render
+        with :func:`case_imaging`). Use :func:`board_scene` with ``**scene_kwargs(case)``.
     """
     import dataclasses
 
@@ -1403,11 +1405,39 @@ def random_board_case(board: Board | str | os.PathLike, seed: int, *,
         else:
             shape = (new_n, W)
             off[1] = off[1]
+    # The imaging, drawn last (the cases' parts, defects and placements do not depend on
+    # it): a pupil 0.35–1.4 times the default cone (at 20 µm/px a depth of field of
+    # 0.06–0.23 mm, so a focus peak spans ~1.5–5 frames of the benchmarks' 0.05 mm
+    # step), in-focus blur, and a sensor from a bright, quiet one to small pixels in
+    # poor light.
+    imaging = {"aperture_scale": float(np.exp(rng.uniform(math.log(0.35), math.log(1.4)))),
+               "sigma0_px": float(rng.uniform(0.2, 0.8)),
+               "sensor": {"full_well_e": float(np.exp(rng.uniform(math.log(4e3),
+                                                                  math.log(3e4)))),
+                          "read_noise_e": float(rng.uniform(3.0, 12.0)),
+                          "exposure": float(rng.uniform(0.55, 0.9)),
+                          "flicker": float(rng.uniform(0.0, 0.03)),
+                          "jitter_px": float(rng.uniform(0.0, 0.15))}}
     return {"board": board, "defects": defects, "params": params, "finish": finish,
             "fiducials": fiducials, "lighting": lighting, "lens": lens,
             "offset_mm": (float(off[0]), float(off[1])), "rotate_deg": rot,
             "shape": tuple(int(x) for x in shape), "edge": edge, "seed": int(seed),
-            "pixel_size_mm": p}
+            "pixel_size_mm": p, "imaging": imaging}
+
+
+def case_imaging(case: Mapping[str, Any]):
+    """(:class:`~smdinspect.optics.Optics`, :class:`~smdinspect.synth.SensorConfig`) of a
+    :func:`random_board_case`: its lens, pixel size, pupil, in-focus blur and sensor."""
+    import dataclasses
+
+    from ..optics import Optics
+    from ._render import SensorConfig
+
+    im = case["imaging"]
+    base = Optics.for_pixel_size(case["pixel_size_mm"], telecentric=case["lens"] == "telecentric")
+    optics = dataclasses.replace(base, aperture_mm=base.aperture_mm * im["aperture_scale"],
+                                 sigma0_px=im["sigma0_px"])
+    return optics, SensorConfig(**im["sensor"])
 
 
 def scene_kwargs(case: Mapping[str, Any]) -> dict[str, Any]:

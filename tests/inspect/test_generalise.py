@@ -14,12 +14,14 @@ import pytest
 
 from smdinspect.inspect import InspectConfig, Verdict, load_board
 from smdinspect.inspect._inspect import inspect_surface
+from smdinspect.optics import Optics
 from smdinspect.synth._board_scene import (
     SEVERITY,
     TEST_SEEDS,
     TUNING_SEEDS,
     board_scene,
     board_shape,
+    case_imaging,
     random_board_case,
     scene_kwargs,
 )
@@ -94,6 +96,27 @@ def test_random_cases_are_repeatable_and_cover_the_ranges():
     assert fid == {True, False} and edge
     assert set(seen) == set(SEVERITY)
     assert min(seen["tombstone"]) < 25 and max(seen["tombstone"]) > 60
+
+
+def test_random_cases_draw_their_imaging():
+    """Each case has its own depth of field, in-focus blur and sensor, over the stated
+    ranges, and the rest of the case does not depend on them."""
+    b = load_board(DEMO)
+    dofs, noise, wells = [], [], []
+    for seed in range(30):
+        case = random_board_case(b, seed)
+        optics, sensor = case_imaging(case)
+        base = Optics.for_pixel_size(case["pixel_size_mm"],
+                                     telecentric=case["lens"] == "telecentric")
+        scale = optics.aperture_mm / base.aperture_mm
+        assert 0.35 - 1e-9 <= scale <= 1.4 + 1e-9
+        assert optics.pixel_size_mm == pytest.approx(case["pixel_size_mm"])
+        assert 0.2 <= optics.sigma0_px <= 0.8
+        dofs.append(optics.depth_of_field_mm())
+        noise.append(sensor.read_noise_e)
+        wells.append(sensor.full_well_e)
+    assert max(dofs) > 2.5 * min(dofs)
+    assert max(noise) - min(noise) > 5 and max(wells) > 4 * min(wells)
 
 
 def test_an_edge_case_cuts_parts_at_the_field_edge():
