@@ -608,8 +608,7 @@ def masked_gradient(height: np.ndarray, ok: np.ndarray, *, sigma_px: float,
 
 
 def centroid_correction(height_mm: np.ndarray, ok: np.ndarray, offset_px, *, window_px: int,
-                        max_mm: float, width_steps: np.ndarray | None = None,
-                        edge_mm: float | None = None) -> np.ndarray:
+                        max_mm: float, width_steps: np.ndarray | None = None) -> np.ndarray:
     """Heights moved from under the window's focus-energy centroid to under its centre.
 
     A window's focus curve is the sum of its pixels' curves, each weighted by its texture
@@ -618,11 +617,7 @@ def centroid_correction(height_mm: np.ndarray, ok: np.ndarray, offset_px, *, win
     the window centre (:meth:`PeakTracker.centroid_px`). So h(p) = ĥ − ∇h·c, with ∇h
     estimated from the ``ok`` heights themselves (normalised Gaussian convolution at a
     quarter window, then central differences). Only ``ok`` pixels with enough ``ok``
-    neighbours move, by at most ``max_mm`` (a step edge is not a plane). With ``edge_mm``
-    a pixel is left alone where the steepest gradient within its window (+1 px) rises by
-    more than ``edge_mm`` (the depth-edge jump) across a window: it sits at a step, not
-    on a slope, and the energy centroid there is pulled by the step's defocused contrast
-    (next to a chip body the board's heights moved up by a whole step: false webs).
+    neighbours move, by at most ``max_mm`` (a step edge is not a plane).
 
     The centroid weighs each pixel by its focus summed over the frames; that sum is the
     curve's integral, independent of where the pixel's height falls between frames, only
@@ -639,11 +634,6 @@ def centroid_correction(height_mm: np.ndarray, ok: np.ndarray, offset_px, *, win
     corr = gx * dx + gy * dy
     np.clip(corr, -max_mm, max_mm, out=corr)
     move = ok & dense
-    if edge_mm is not None:
-        # the steepest gradient the window and the smoothing reach must be a slope
-        k = int(window_px) + 2
-        steep = cv2.dilate(np.hypot(gx, gy), np.ones((k, k), np.uint8))
-        move &= steep * np.float32(window_px) <= np.float32(edge_mm)
     if width_steps is not None:
         move &= np.nan_to_num(width_steps, nan=0.0) >= CENTROID_MIN_WIDTH_STEPS
     corr[~move] = 0.0

@@ -395,9 +395,7 @@ def _measure(run: "_Run", band: tuple[int, int, int, int], *,
         height = centroid_correction(height, confidence >= config.min_confidence,
                                      centroid, window_px=config.window_px,
                                      max_mm=abs(stack.step_mm),
-                                     width_steps=fit.sigma_mm / np.float32(abs(stack.step_mm)),
-                                     edge_mm=config.edge_jump_steps * abs(stack.step_mm)
-                                     if config.edge_jump_steps > 0 else None)
+                                     width_steps=fit.sigma_mm / np.float32(abs(stack.step_mm)))
     # coarse levels fill, finest first, what the finer ones left unreliable
     filled: list[np.ndarray] = []
     for level in coarse:
