@@ -41,8 +41,8 @@ from ..errors import InputError
 from ..inspect._board import Board, Component, Joint, _pad_axis, load_board
 from ._scene import Scene
 
-__all__ = ["DEFECTS", "FINISHES", "SEVERITY", "board_scene", "board_shape", "parse_defects",
-           "random_board_case", "case_imaging", "scene_kwargs", "TEST_SEEDS", "TUNING_SEEDS"]
+__all__ = ["DEFECTS", "FINISHES", "SEVERITY", "TEST_SEEDS", "TUNING_SEEDS", "board_scene",
+           "board_shape", "case_imaging", "parse_defects", "random_board_case", "scene_kwargs"]
 
 log = logging.getLogger(__name__)
 
