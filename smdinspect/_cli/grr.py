@@ -38,7 +38,7 @@ def register(sub: argparse._SubParsersAction) -> None:
     from .reconstruct import add_calibration_argument, add_stack_arguments
 
     p = sub.add_parser(
-        "grr", help="gauge R&R: repeatability and %GR&R per joint from repeated sweeps",
+        "grr", help="gauge R&R: repeatability and %%GR&R per joint from repeated sweeps",
         description="Gauge repeatability and reproducibility of the joint measurements: "
                     "inspect N sweeps of one board and report, per joint and per "
                     "package/joint type, the repeatability and reproducibility of max "

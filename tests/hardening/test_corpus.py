@@ -453,3 +453,23 @@ def test_pipeline_refuses_a_board_far_larger_than_the_field(earlier, tmp_path):
     with pytest.raises(InputError, match="more than 4 times the measured field"):
         inspect_stack(earlier, board_file(tmp_path, size_mm=[400.0, 400.0]), tmp_path / "rep")
     assert not (tmp_path / "rep" / "report.json").exists()
+
+
+def test_every_help_page_prints(capsys):
+    """`smdinspect --help` once crashed on a bare '%' in a subcommand's help string."""
+    from smdinspect.cli import build_parser
+
+    parser = build_parser()
+    commands = [[]]
+    for action in parser._subparsers._group_actions:
+        for name, sub in action.choices.items():
+            commands.append([name])
+            for inner in sub._actions:
+                if isinstance(inner, type(action)):
+                    commands.extend([name, n] for n in inner.choices)
+    for argv in commands:
+        with pytest.raises(SystemExit) as stop:
+            main([*argv, "--help"])
+        assert stop.value.code == 0, argv
+        assert "usage: smdinspect" in capsys.readouterr().out, argv
+    assert len(commands) > 10
