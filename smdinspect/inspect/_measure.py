@@ -690,6 +690,17 @@ def _heel_fillet(x: np.ndarray, z: np.ndarray, uz: np.ndarray, lead_mm: float, *
     return lead_mm + A, _hypot(se, uf, u_lead)
 
 
+def _seen_next_to_lead(side: np.ndarray, rel: np.ndarray, across: np.ndarray,
+                       half_width: float) -> bool:
+    """Whether at least half of the inner half of the side strip (the pixels nearer the
+    lead's side than the strip's middle) is reliable."""
+    if not side.any():
+        return False
+    mid = 0.5 * (half_width + float(np.max(across[side])))
+    inner = side & (across <= mid)
+    return bool(inner.any() and (inner & rel).sum() >= 0.5 * inner.sum())
+
+
 def _measure_gullwing(comp, joint, win: _Win, config: InspectConfig, level: float,
                       u_level: float) -> JointMeasurement:
     p = win.ctx.p
@@ -763,7 +774,11 @@ def _measure_gullwing(comp, joint, win: _Win, config: InspectConfig, level: floa
     # on a dry foot, not a fillet (tuning boards 8-47: good joints' side percentile
     # 56 µm and up, 1 165 joints; missing joints' 30 µm and under, two of them read a
     # 'heel fillet' of 35-40 µm that way and one passed).
-    side_bare = np.isfinite(m.side_mm) and m.side_mm < config.missing_height_mm
+    # The low reading must be a measurement up to the lead, though: a steep fillet up the
+    # lead's side reads as a wall in a focal sweep and leaves the pixels next to the lead
+    # unreliable, so a strip measured only at its outer edge reads low on a good joint.
+    side_bare = (np.isfinite(m.side_mm) and m.side_mm < config.missing_height_mm
+                 and _seen_next_to_lead(side, win.rel, np.abs(v), b2))
     if np.isfinite(on_foot) and on_foot > g_t + 0.02 and not raised_lead and not side_bare:
         m.max_mm, m.u_max_mm, m.max_method = on_foot, _hypot(u_on_foot, u_level), "foot"
         m.heel_fit_n = heel_n

@@ -607,6 +607,64 @@ def masked_gradient(height: np.ndarray, ok: np.ndarray, *, sigma_px: float,
     return gx, gy, dense
 
 
+def level_gradient(height: np.ndarray, ok: np.ndarray, gx: np.ndarray, gy: np.ndarray,
+                   dense: np.ndarray, *, sigma_px: float, gap_mm: np.ndarray,
+                   chunk: int = 4096) -> None:
+    """Gradients of :func:`masked_gradient` redone, in place, from the pixel's own level,
+    at the pixels of ``dense`` (cleared there where no plane can be fitted).
+
+    A window's focus curve sums its pixels' curves. Heights that run on without a gap
+    (a slope, however steep) sum to one peak; two groups of heights farther apart than
+    twice the curve's width do not (two equal Gaussians farther apart than 2σ make two
+    peaks), and the far group does not pull the tracked peak. Next to a step (a body
+    on the board) the smoothing of :func:`masked_gradient` reaches the other level
+    all the same, and the smoothed step's tail reads as a slope on flat ground.
+
+    So where the footprint (3σ + 1 px) holds ``ok`` heights farther than ``gap_mm``
+    from the pixel's own, its level is grown in height from the pixel's own: every
+    footprint height within ``gap_mm`` of the level joins it, until none does. The
+    gradient is then the weighted least-squares plane (Gaussian weights of σ) through
+    the level's heights; where they cannot hold a plane (under a quarter of the
+    Gaussian's weight, or nearly on a line) the pixel is cleared from ``dense``.
+    """
+    r = int(np.ceil(3.0 * sigma_px)) + 1
+    k = np.ones((2 * r + 1, 2 * r + 1), np.uint8)
+    h = height.astype(np.float32)
+    hi = cv2.dilate(np.where(ok, h, -np.inf).astype(np.float32), k)
+    lo = cv2.erode(np.where(ok, h, np.inf).astype(np.float32), k)
+    gap = np.broadcast_to(np.asarray(gap_mm, np.float32), h.shape)
+    ys, xs = np.nonzero(dense & ((hi - h > gap) | (h - lo > gap)))
+    oy, ox = (a.ravel() for a in np.mgrid[-r:r + 1, -r:r + 1])
+    g = np.exp(-(ox * ox + oy * oy) / (2.0 * sigma_px ** 2)).astype(np.float32)
+    hp = np.pad(np.where(ok, h, np.nan), r, constant_values=np.nan)
+    moments = np.stack([np.ones_like(g), ox, oy, ox * ox, ox * oy, oy * oy]).T * g[:, None]
+    for i in range(0, ys.size, chunk):
+        y, x = ys[i:i + chunk], xs[i:i + chunk]
+        q = hp[(y + r)[:, None] + oy, (x + r)[:, None] + ox] - h[y, x][:, None]  # (n, K)
+        t = gap[y, x][:, None]
+        low, high = -t[:, 0], t[:, 0]
+        for _ in range(4 * r):  # a level can grow across the footprint at most this often
+            inside = (q >= low[:, None]) & (q <= high[:, None])
+            new_low = np.min(np.where(inside, q, 0.0), axis=1) - t[:, 0]
+            new_high = np.max(np.where(inside, q, 0.0), axis=1) + t[:, 0]
+            if np.array_equal(new_low, low) and np.array_equal(new_high, high):
+                break
+            low, high = new_low, new_high
+        w = inside.astype(np.float32)
+        n, sx, sy, sxx, sxy, syy = (w @ moments).T
+        wq = w * np.nan_to_num(q) * g
+        sh, sxh, syh = wq.sum(axis=1), wq @ ox, wq @ oy
+        nn = np.maximum(n, 1e-12)
+        cxx, cxy, cyy = sxx - sx * sx / nn, sxy - sx * sy / nn, syy - sy * sy / nn
+        bx, by = sxh - sx * sh / nn, syh - sy * sh / nn
+        det = cxx * cyy - cxy * cxy
+        fine = (n >= 0.25 * g.sum()) & (det > (0.25 * sigma_px ** 2 * nn) ** 2)
+        det = np.where(fine, det, 1.0)
+        gx[y, x] = np.where(fine, (cyy * bx - cxy * by) / det, 0.0)
+        gy[y, x] = np.where(fine, (cxx * by - cxy * bx) / det, 0.0)
+        dense[y, x] &= fine
+
+
 def centroid_correction(height_mm: np.ndarray, ok: np.ndarray, offset_px, *, window_px: int,
                         max_mm: float, width_steps: np.ndarray | None = None) -> np.ndarray:
     """Heights moved from under the window's focus-energy centroid to under its centre.
@@ -629,13 +687,16 @@ def centroid_correction(height_mm: np.ndarray, ok: np.ndarray, offset_px, *, win
     Returns a new float32 array.
     """
     dx, dy = offset_px
-    gx, gy, dense = masked_gradient(height_mm, ok, sigma_px=max(window_px / 4.0, 1.0),
-                                    min_weight=0.5)
-    corr = gx * dx + gy * dy
-    np.clip(corr, -max_mm, max_mm, out=corr)
+    sigma = max(window_px / 4.0, 1.0)
+    gx, gy, dense = masked_gradient(height_mm, ok, sigma_px=sigma, min_weight=0.5)
     move = ok & dense
     if width_steps is not None:
-        move &= np.nan_to_num(width_steps, nan=0.0) >= CENTROID_MIN_WIDTH_STEPS
+        width = np.nan_to_num(width_steps, nan=0.0)
+        move &= width >= CENTROID_MIN_WIDTH_STEPS
+        level_gradient(height_mm, ok, gx, gy, move, sigma_px=sigma,
+                       gap_mm=2.0 * width * max_mm)  # twice the curve's width, in mm
+    corr = gx * dx + gy * dy
+    np.clip(corr, -max_mm, max_mm, out=corr)
     corr[~move] = 0.0
     return height_mm.astype(np.float32) - corr
 
