@@ -8,6 +8,7 @@ import time
 import numpy as np
 
 from ..errors import BoardNotLocatedError, InputError
+from ..sff._surface import clipped_white
 from ._config import InspectConfig
 from ._geometry import apply2d
 from ._measure import (
@@ -137,7 +138,8 @@ def inspect_surface(surface, board, config: InspectConfig | None = None, *,
     ctx = MeasureContext(height=level, reliable=reliable, u_px=u_px,
                          bare=bare & (np.abs(level) <= 3 * cfg.plane_distance_mm),
                          T=reg.transform, p=p, u_plane_mm=float(u_plane), chroma=chroma,
-                         bare_chroma=bare_chroma, field=field)
+                         bare_chroma=bare_chroma, field=field,
+                         clipped=clipped_white(surface.aif))
 
     # 4. Measure and judge.
     jm, cm = measure_board(board, ctx, cfg)

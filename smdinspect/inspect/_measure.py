@@ -146,6 +146,7 @@ class JointMeasurement:
     observed_mm: float = NAN        # the solder area's percentile (what the pixels show)
     bulge_mm: float = NAN           # chip, bulging fillet: the concave fit's height (overshoots)
     bare_fraction: float = NAN      # visible pad looking like bare finish (colour)
+    clipped_fraction: float = NAN   # solder area clipped white in the all-in-focus image
     gap_mm: float = NAN             # highest covered level towards a neighbour
     gap_neighbour: str = ""
     gap_fraction: float = NAN
@@ -197,6 +198,9 @@ class MeasureContext:
         :func:`pad_chroma_reference`); NaN when unknown or neutral.
     field : (H, W) bool or None
         Where the measurement exists (the aligned field of view); None: everywhere.
+    clipped : (H, W) bool or None
+        Pixels clipped white in the all-in-focus image
+        (:func:`smdinspect.sff.clipped_white`); None: not known.
     """
 
     height: np.ndarray
@@ -209,6 +213,7 @@ class MeasureContext:
     chroma: np.ndarray | None = None
     bare_chroma: float = NAN
     field: np.ndarray | None = None
+    clipped: np.ndarray | None = None
 
     def in_field(self, poly_board: np.ndarray) -> float:
         """Share of a BOARD polygon's area inside the image and the measured field."""
@@ -511,8 +516,11 @@ def _bare_fraction(win: _Win, region: np.ndarray) -> float:
 def _new(joint, win: _Win, pad: np.ndarray, level: float) -> JointMeasurement:
     ctx = win.ctx
     centre_w = apply2d(ctx.T, np.array([joint.center_mm]))[0]
+    clipped = (float(np.mean(ctx.clipped[win.sl][pad])) if ctx.clipped is not None and pad.any()
+               else NAN)
     return JointMeasurement(joint.id, (float(centre_w[0]), float(centre_w[1])), int(pad.sum()),
-                            0.0, level_mm=level, polygon_px=ctx.board_to_px(joint.polygon_mm))
+                            0.0, level_mm=level, polygon_px=ctx.board_to_px(joint.polygon_mm),
+                            clipped_fraction=clipped)
 
 
 def _propagated_u(g: np.ndarray, u: np.ndarray) -> float:

@@ -108,10 +108,21 @@ MIN_PASS_REACH = 0.5
 #: Reliable pixels a solder area needs for its percentile to call ``excess`` when too
 #: little of the area is reliable to judge it otherwise (rule 9).
 MIN_EVIDENCE_PIXELS = 40
+#: A solder area with at least this share clipped white (over-exposed) says so when it
+#: is too little measured to judge: the user can act on that (exposure, lighting).
+CLIPPED_NOTE_FRACTION = 0.2
 
 
 def _um(x: float) -> str:
     return f"{x * 1000:.0f} µm" if math.isfinite(x) else "n/a"
+
+
+def _clipped_note(m: JointMeasurement) -> str:
+    """The note on over-exposure for an unmeasured solder area (empty when not clipped)."""
+    if not m.clipped_fraction >= CLIPPED_NOTE_FRACTION:
+        return ""
+    return (f"; {m.clipped_fraction:.0%} of it is clipped white (over-exposed glint): "
+            "lower the exposure or the lighting")
 
 
 def judge_component(comp, m: ComponentMeasurement, config: InspectConfig) -> ComponentResult:
@@ -340,7 +351,8 @@ def _joint_rule(joint, comp, m: JointMeasurement, comp_result: ComponentResult,
                                     f"{m.reliable_fraction:.0%} of the solder area that is "
                                     f"reliable")
         return Verdict.UNRELIABLE, (f"only {m.reliable_fraction:.0%} of the solder area is reliable "
-                                    f"(< {config.min_reliable_fraction:.0%}); not judged")
+                                    f"(< {config.min_reliable_fraction:.0%}); not judged"
+                                    + _clipped_note(m))
     h, u = m.max_mm, m.u_max_mm
     pm = f" ± {_um(u)}" if math.isfinite(u) else ""
     how = f" ({m.max_method})" if m.max_method else ""

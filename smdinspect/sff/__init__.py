@@ -20,7 +20,7 @@ from ._export import (
 from ._focus import (OPERATORS, FocusOperator, band_powers, focus_measure, focus_measure_moments,
                      noise_sigma, prefilter_sigma)
 from ._reconstruct import reconstruct, to_gray
-from ._surface import Surface, pixel_to_xy_mm, xy_mm_to_pixel
+from ._surface import Surface, clipped_white, pixel_to_xy_mm, xy_mm_to_pixel
 
 __all__ = [
     "OPERATORS",
@@ -34,6 +34,7 @@ __all__ = [
     "band_powers",
     "borrowed_mask",
     "centroid_correction",
+    "clipped_white",
     "confidence_map",
     "depth_edge_mask",
     "estimate_alignment",

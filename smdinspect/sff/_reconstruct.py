@@ -26,7 +26,7 @@ from ._depth import (PeakTracker, centroid_correction, fit_peaks, masked_gradien
                      select_curve_power)
 from ._focus import (FocusOperator, band_powers, focus_measure, focus_measure_moments,
                      noise_focus, noise_focus_spread, prefilter, prefilter_sigma)
-from ._surface import Surface
+from ._surface import Surface, clipped_white
 
 __all__ = ["reconstruct", "to_gray"]
 
@@ -43,6 +43,9 @@ FRAME_CACHE_BYTES = 256 * 2**20
 #: A share of the field sharpest on the lowest or highest frame (the scene extends beyond
 #: the sweep there) from which reconstruct() warns and names the end to extend.
 BEYOND_SWEEP_WARN = 0.05
+#: A share of the field clipped white in the all-in-focus image from which
+#: reconstruct() warns (over-exposure: no height can be measured there).
+CLIPPED_WARN = 0.01
 #: ``summary.json`` → ``beyond_sweep`` keys, the end frame each counts and the side of the
 #: swept range it lies on.
 BEYOND_SWEEP_ENDS = (("below_fraction", "lowest", "below"), ("above_fraction", "highest", "above"))
@@ -538,6 +541,9 @@ def _finish(run: "_Run", planes: dict, stats: dict, bands: list, *, t0: float,
             confidence[hidden] = 0.0
     beyond = np.where(field & ~reliable, beyond, 0).astype(np.int8)
     meta["beyond_sweep"] = _beyond_sweep(beyond, field, z_mm)
+    clipped = _clipped(aif, field, reliable)
+    if clipped is not None:
+        meta["clipped_white"] = clipped
     t_total = time.perf_counter() - t0
     h, w = run.shape
     meta.update({
@@ -626,6 +632,25 @@ def _beyond_sweep(beyond: np.ndarray, field: np.ndarray, z_mm: np.ndarray) -> di
                         "extend the sweep %s z = %.3f mm to measure it", 100 * share, frame,
                         float(z), side, side, float(z))
     return out
+
+
+def _clipped(aif: np.ndarray, field: np.ndarray, reliable: np.ndarray) -> dict | None:
+    """Shares of the field, and of its unreliable part, clipped white in the all-in-focus
+    image (:func:`~smdinspect.sff._surface.clipped_white`), for ``summary.json``; a
+    warning when the share of the field reaches :data:`CLIPPED_WARN`."""
+    mask = clipped_white(aif)
+    if mask is None:
+        return None
+    in_field = mask & field
+    n_field = max(int(np.count_nonzero(field)), 1)
+    n_unrel = max(int(np.count_nonzero(field & ~reliable)), 1)
+    share = np.count_nonzero(in_field) / n_field
+    if share >= CLIPPED_WARN:
+        log.warning("%.1f %% of the field is clipped white in its sharpest frame (over-exposed: "
+                    "no texture, so no height there); lower the exposure or the lighting",
+                    100 * share)
+    return {"fraction_of_field": round(float(share), 4),
+            "fraction_of_unreliable": round(float(np.count_nonzero(in_field & ~reliable) / n_unrel), 4)}
 
 
 class _FrameOrderSums:

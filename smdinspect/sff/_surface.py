@@ -9,7 +9,23 @@ from typing import Any
 
 import numpy as np
 
-__all__ = ["Surface", "pixel_to_xy_mm", "xy_mm_to_pixel"]
+__all__ = ["Surface", "clipped_white", "pixel_to_xy_mm", "xy_mm_to_pixel"]
+
+
+def clipped_white(aif: np.ndarray) -> np.ndarray | None:
+    """(H, W) bool: pixels clipped at the sensor's white level in every channel of the
+    all-in-focus image (over-exposed: a glint or a bright finish flat at full scale has
+    no texture, so no focus curve and no height). The AIF takes each pixel from its
+    sharpest frame, where a glint is brightest. None for float images (no known white).
+    """
+    a = np.asarray(aif)
+    if not np.issubdtype(a.dtype, np.integer):
+        return None
+    white = np.iinfo(a.dtype).max
+    # one level below full scale: JPEG ringing and the alignment's resampling of a flat
+    # white area leave it a level short here and there
+    top = a >= white - 1
+    return top.all(axis=2) if top.ndim == 3 else top
 
 
 def pixel_to_xy_mm(rows, cols, *, shape, pixel_size_mm):

@@ -95,3 +95,26 @@ def test_surface_without_pixel_size_is_bad_input():
 
     with pytest.raises(InputError, match="no pixel size"):
         inspect_surface(replace(surface, pixel_size_mm=None), board)
+
+
+def test_an_over_exposed_joint_says_so():
+    """A solder area too little measured because it is clipped white (a glint at full
+    scale has no texture) tells the user to lower the exposure; one unmeasured for
+    another reason (dull, textureless) does not."""
+    import dataclasses
+
+    from smdinspect.inspect._geometry import apply2d, polygon_mask, world_to_pixel
+
+    surface, labels, board = truth_surface(DEMO, "", seed=3, dead_box=("R2.1", 0.5, 0.5))
+    T = np.array(labels["placement"]["board_to_world"])
+    pad = polygon_mask(world_to_pixel(apply2d(T, board.joint("R2.1").polygon_mm),
+                                      shape=surface.shape, pixel_size_mm=0.02), surface.shape)
+    dull = inspect_surface(surface, board, IDEAL)
+    aif = surface.aif.copy()
+    aif[pad] = 255
+    glint = inspect_surface(dataclasses.replace(surface, aif=aif), board, IDEAL)
+    for result, clipped in ((dull, False), (glint, True)):
+        j = {j.id: j for j in result.joints}["R2.1"]
+        assert j.verdict == Verdict.UNRELIABLE, j.reason
+        assert ("clipped white" in j.reason) == clipped, j.reason
+    assert "100% of it is clipped white" in {j.id: j for j in glint.joints}["R2.1"].reason
