@@ -113,3 +113,43 @@ def render_board_stack(root, defects: str, *, seed: int, textureless_joint: str 
     stack = render_stack(scene, Z_MM if z_mm is None else z_mm, optics=Optics(pixel_pitch_mm=pixel_size_mm), seed=seed,
                          out=root, previews=False)
     return stack, labels
+
+
+def part_crop(board, ref: str, *, pixel_size_mm: float = 0.02, margin_mm: float = 0.8,
+              rotate_deg: float = 0.0):
+    """A field of view around one part: the board with only that part (no fiducials),
+    and the ``offset_mm`` and ``shape`` of :func:`board_scene` that centre it in an image
+    holding its body and pads with ``margin_mm`` to spare, turned by ``rotate_deg``.
+
+    Returns (board, offset_mm, shape).
+    """
+    import dataclasses
+    import math
+
+    b = load_board(board) if isinstance(board, str) else board
+    part = b.component(ref)
+    pts = np.vstack([part.body_polygon_mm()]
+                    + [np.asarray(j.polygon_mm) for j in part.joints])
+    centre = (pts.min(0) + pts.max(0)) / 2
+    a = math.radians(rotate_deg)
+    R = np.array([[math.cos(a), -math.sin(a)], [math.sin(a), math.cos(a)]])
+    turned = (pts - centre) @ R.T
+    ext = turned.max(0) - turned.min(0) + 2 * margin_mm
+    shape = tuple(int(math.ceil(e / pixel_size_mm)) + 1 for e in ext[::-1])
+    off = -R @ (centre - np.asarray(b.size_mm) / 2)
+    one = dataclasses.replace(b, components=(part,), fiducials=())
+    return one, (float(off[0]), float(off[1])), shape
+
+
+def inspect_placed(surface, board, labels, config=None):
+    """Inspect ``surface`` at the scene's true placement (``labels``), without
+    registration: the verdict rules alone, on a crop where the board's layout that
+    registration needs is out of view."""
+    from smdinspect.inspect import InspectConfig
+    from smdinspect.inspect._inspect import _inspect_located
+    from smdinspect.inspect._register import RegistrationResult
+
+    T = np.array(labels["placement"]["board_to_world"], np.float64)
+    reg = RegistrationResult(transform=T, fitness=float("nan"), rmse_mm=float("nan"),
+                             converged=True, method="truth")
+    return _inspect_located(surface, board, reg, config or InspectConfig())
