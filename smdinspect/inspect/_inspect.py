@@ -98,7 +98,8 @@ def inspect_surface(surface, board, config: InspectConfig | None = None, *,
         err = BoardNotLocatedError(f"board {board.name!r} not located: {reg.reason}")
         err.registration = reg  # type: ignore[attr-defined]
         raise err
-    return _inspect_located(surface, board, reg, cfg, plane0=plane0, t0=t0)
+    return _inspect_located(surface, board, reg, cfg, plane0=plane0, t0=t0,
+                            grids=(height, reliable, x, y))
 
 
 def _grids(surface):
@@ -112,17 +113,18 @@ def _grids(surface):
 
 
 def _inspect_located(surface, board, reg: RegistrationResult, cfg: InspectConfig, *,
-                     plane0=None, t0: float | None = None) -> InspectionResult:
+                     plane0=None, t0: float | None = None, grids=None) -> InspectionResult:
     """Steps 3 and 4 of :func:`inspect_surface` on a board already located by ``reg``.
 
     ``plane0``: the first board plane (fitted here when not given); ``t0``: the start
-    time the result's ``seconds`` counts from. The tests call it with the scene's true
-    placement to judge the verdict rules on a crop around one part, where registration
-    (which needs the board's layout) has nothing to hold on to.
+    time the result's ``seconds`` counts from; ``grids``: :func:`_grids` of the surface
+    when already made. The tests call it with the scene's true placement to judge the
+    verdict rules on a crop around one part, where registration (which needs the
+    board's layout) has nothing to hold on to.
     """
     t0 = time.perf_counter() if t0 is None else t0
     p = float(surface.pixel_size_mm)
-    height, reliable, x, y = _grids(surface)
+    height, reliable, x, y = _grids(surface) if grids is None else grids
     H, W = height.shape
     if plane0 is None:
         plane0 = _board_plane(x, y, height, reliable, cfg)
