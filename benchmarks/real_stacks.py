@@ -30,7 +30,10 @@ from smdinspect.sff._depth import masked_gradient
 from smdinspect.stack import FocalStack
 
 REPO = Path(__file__).resolve().parents[1]
-CLI = REPO / ".venv" / "bin" / "smdinspect"
+_SCRIPT = REPO / ".venv" / "bin" / "smdinspect"
+#: the command; in a git worktree without a .venv, this interpreter with -m (run it
+#: with PYTHONPATH set to the worktree)
+CLI = [str(_SCRIPT)] if _SCRIPT.exists() else [sys.executable, "-m", "smdinspect"]
 
 #: name -> (file glob, step_mm for a plain image list; None: z from the file name)
 STACKS = {
@@ -228,7 +231,7 @@ def time_cli(paths: list[Path], step_mm: float, config: FocusConfig, repeat: int
     c = config.to_dict()
     options = [f"--{k.replace('_', '-')}={c[k]}" for k in
                ("operator", "window_px", "fit", "fit_half_width", "min_confidence", "workers")]
-    cmd = [str(CLI), "reconstruct", *map(str, paths), "--step-mm", str(step_mm),
+    cmd = [*CLI, "reconstruct", *map(str, paths), "--step-mm", str(step_mm),
            *options, "--align", "--out", "{tmp}/out"]
     t = time_process(cmd, repeat)
     return {"cli_s": t["wall_s"], "cli_cpu_s": t["cpu_s"], "cli_peak_mib": t["peak_mib"],

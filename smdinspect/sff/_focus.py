@@ -955,9 +955,12 @@ def _band_layout(tile: int):
     return band.ravel(), np.maximum(counts, 1), window
 
 
-def band_powers(gray: np.ndarray) -> np.ndarray | None:
+def band_powers(gray: np.ndarray, *, gain: float = 1.0) -> np.ndarray | None:
     """(tiles, bands) mean power spectrum of :data:`BAND_GRID`² tiles of one grey frame in
-    the radial bands ending at :data:`BAND_EDGES`; None for frames smaller than a tile."""
+    the radial bands ending at :data:`BAND_EDGES`; None for frames smaller than a tile.
+
+    ``gain`` scales the grey levels first (as ``band_powers(gray * float32(gain))``, only
+    the tiles are scaled: no whole-frame copy)."""
     h, w = gray.shape
     t = BAND_TILE_PX
     if min(h, w) < t:
@@ -969,6 +972,8 @@ def band_powers(gray: np.ndarray) -> np.ndarray | None:
             r0 = min(max(0, int((i + 0.5) * h / BAND_GRID) - t // 2), h - t)
             c0 = min(max(0, int((j + 0.5) * w / BAND_GRID) - t // 2), w - t)
             tile = gray[r0:r0 + t, c0:c0 + t].astype(np.float32)
+            if gain != 1.0:
+                tile *= np.float32(gain)
             tile = (tile - tile.mean()) * window
             power = np.abs(np.fft.fft2(tile)) ** 2
             out[i * BAND_GRID + j] = np.bincount(band, power.ravel(),

@@ -125,7 +125,7 @@ def reconstruct(
         gray = to_gray(image)
         means[i] = mean = float(gray.mean())
         if auto:
-            powers[i] = band_powers(gray * np.float32(MEAN_GREY / mean) if mean > 0 else gray)
+            powers[i] = band_powers(gray, gain=MEAN_GREY / mean if mean > 0 else 1.0)
         if cached[0] + image.nbytes <= FRAME_CACHE_BYTES:
             cache[i] = image
             cached[0] += image.nbytes
@@ -266,7 +266,10 @@ def _measure(run: "_Run", band: tuple[int, int, int, int], *,
         # focus measure, defocus does not change the mean (blur conserves light).
         norm = MEAN_GREY / mean if mean > 0 else 1.0
         if mean > 0:
-            gray = gray * np.float32(norm)
+            if np.may_share_memory(gray, image):  # a float32 grey frame is its own grey
+                gray = gray * np.float32(norm)
+            else:  # a grey made here: scaled in place (no second frame-sized plane)
+                gray *= np.float32(norm)
         # σ is in reference pixels; frame i's pixels are larger by 1/scale
         sigma_i = round(sigma * (alignment.scale(i) if alignment is not None else 1.0), 3)
         gray = prefilter(gray, sigma_i)
