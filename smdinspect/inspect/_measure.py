@@ -170,6 +170,10 @@ class ComponentMeasurement:
     in_field_fraction: float = 1.0  # share of the body and pads inside the measured field
     tilt_pixels: int = 0            # body pixels the tilt was fitted to
     body_mask: np.ndarray | None = field(default=None, repr=False)   # (H, W) the blob
+    #: chips: the body top's plane, h = a·x + b·y + c in the part's own frame (mm, above
+    #: the local board), and twice the standard error of its height at the end caps
+    top_plane: tuple[float, float, float] | None = None
+    top_plane_u2_mm: float = NAN
 
 
 @dataclass
@@ -449,7 +453,7 @@ def measure_board(board, ctx: MeasureContext, config: InspectConfig):
             if comp.kind == "gullwing" and comp.lead:
                 joints[j.id] = _measure_gullwing(comp, j, win, config, level, u_level)
             else:
-                joints[j.id] = _measure_chip(comp, j, win, config, level, u_level)
+                joints[j.id] = _measure_chip(comp, j, win, config, level, u_level, body=cm)
         # Where the body really stands (a shifted part covers its own gap band).
         body = None if cm.body_mask is None else cm.body_mask[win.sl]
         _measure_gaps(comp, win, config, joints, others=near[win.sl], body=body,
@@ -569,7 +573,7 @@ def _meniscus(d: np.ndarray, length: float, z: np.ndarray, uz: np.ndarray,
 
 
 def _measure_chip(comp, joint, win: _Win, config: InspectConfig, level: float,
-                  u_level: float) -> JointMeasurement:
+                  u_level: float, body: ComponentMeasurement | None = None) -> JointMeasurement:
     p = win.ctx.p
     pad = win.mask(joint.polygon_mm)
     u, v, out, acr, q0 = win.axes(joint)
@@ -590,7 +594,15 @@ def _measure_chip(comp, joint, win: _Win, config: InspectConfig, level: float,
     cap = (u >= hl - t + mg) & (u <= hl - mg) & (np.abs(v_body) <= hw - mg) & win.rel_all
     top = body_top_mm(comp)
     if cap.sum() >= 5:
-        m.cap_mm = float(np.percentile(win.h[cap], 90)) - top
+        # Against the body top's own plane where it is measured and raised (a part tilted
+        # under the tombstone limit raises one cap with it: that is not solder), less
+        # its 2σ; the nominal top elsewhere.
+        ref = np.float64(top)
+        if body is not None and body.top_plane is not None and np.isfinite(body.top_plane_u2_mm):
+            a, b, c = body.top_plane
+            ref = np.maximum(top, a * win.lx[cap] + b * win.ly[cap] + c - body.top_plane_u2_mm)
+        m.cap_mm = float(np.percentile(win.h[cap] - ref, 90))
+        top = float(np.mean(ref))
     if n_rel < 3:
         return m
     h, uu = win.h[rel], win.u[rel]
@@ -1005,6 +1017,7 @@ def _measure_body(comp, ctx: MeasureContext, win: _Win, level: float,
     tilt = NAN
     standing = 0.0
     n_tilt = 0
+    plane, u2 = None, NAN
     if comp.kind == "chip":
         # The body between the terminations: solder over an end cap (excess) never
         # reaches it, so its top plane is the body's own (a tilted part tilts it).
@@ -1023,7 +1036,8 @@ def _measure_body(comp, ctx: MeasureContext, win: _Win, level: float,
             middle = wb & (np.abs(win.lx) <= max(hl - t - 0.05, 0.25 * hl)) & \
                 (np.abs(win.ly - yc) <= max((y1 - y0) / 2 - mg, 0.25 * (y1 - y0) / 2)) & \
                 win.rel_all
-        tilt, n_tilt = _body_tilt(win, middle, floor_mm=0.5 * body_top_mm(comp))
+        tilt, n_tilt, plane, u2 = _body_tilt(win, middle, floor_mm=0.5 * body_top_mm(comp),
+                                             at_x_mm=hl - t / 2.0)
         # An upright part stands far above the nominal top over much of its footprint.
         top = body_top_mm(comp)
         near = (np.abs(win.lx) <= hl + 0.1) & (np.abs(win.ly) <= hw + 0.1) & win.rel_all
@@ -1033,22 +1047,27 @@ def _measure_body(comp, ctx: MeasureContext, win: _Win, level: float,
                    + [ctx.in_field(j.polygon_mm) for j in comp.joints])
     return ComponentMeasurement(comp.ref, frac, present, body_h, offset, tilt, standing, n,
                                 in_field_fraction=in_field, tilt_pixels=n_tilt,
-                                body_mask=blob if blob.any() else None)
+                                body_mask=blob if blob.any() else None,
+                                top_plane=plane, top_plane_u2_mm=u2)
 
 
-def _body_tilt(win: _Win, rel: np.ndarray, *, floor_mm: float = 0.1) -> tuple[float, int]:
+def _body_tilt(win: _Win, rel: np.ndarray, *, floor_mm: float = 0.1,
+               at_x_mm: float = 0.0) -> tuple[float, int, tuple | None, float]:
     """Tilt (deg) along the component's axis of a plane fitted to the raised body pixels,
-    and the number of pixels it was fitted to.
+    the number of pixels it was fitted to, the plane (a, b, c: h = a·x + b·y + c in the
+    part's frame) and twice the standard error of its height at x = ±``at_x_mm``, y = 0
+    (the larger of the two ends).
 
     Pixels lower than ``floor_mm`` are left out (a tombstoned chip's lower end exposes
     the pad); the fit is a robust least-squares plane (two passes)."""
     sel = rel & (win.h > floor_mm)
     if sel.sum() < 10:
-        return NAN, int(sel.sum())
+        return NAN, int(sel.sum()), None, NAN
     x, y, z = win.lx[sel], win.ly[sel], win.h[sel]
     A = np.column_stack([x, y, np.ones(len(z))])
     keep = np.ones(len(z), bool)
     coef = np.zeros(3)
+    s = NAN
     for _ in range(2):
         coef = np.linalg.lstsq(A[keep], z[keep], rcond=None)[0]
         res = z - A @ coef
@@ -1056,4 +1075,10 @@ def _body_tilt(win: _Win, rel: np.ndarray, *, floor_mm: float = 0.1) -> tuple[fl
         keep = np.abs(res) <= 3 * s
         if keep.sum() < 10:
             break
-    return float(math.degrees(math.atan(abs(coef[0])))), int(sel.sum())
+    u2 = NAN
+    if keep.sum() >= 10:
+        cov = np.linalg.pinv(A[keep].T @ A[keep]) * s * s
+        u2 = 2.0 * math.sqrt(max(float(g @ cov @ g) for g in
+                                 (np.array([at_x_mm, 0.0, 1.0]), np.array([-at_x_mm, 0.0, 1.0]))))
+    return (float(math.degrees(math.atan(abs(coef[0])))), int(sel.sum()),
+            tuple(float(c) for c in coef), u2)

@@ -70,10 +70,10 @@ class PeakTracker:
         self.lagmax = np.zeros(shape, np.float32)
         # lowest focus over all frames: the curve's floor (defocused texture + noise)
         self.floor = np.full(shape, np.inf, np.float32)
-        # window[j] holds F at frame best_idx - k + j (NaN where outside the stack).
-        # Not initialised: every pixel is settled at its final best frame (_settle runs
-        # for every frame, by update() or finish()), which writes all 2k+1 entries.
-        self.window = np.empty((2 * k + 1, *shape), np.float32)
+        # window[j] holds F at frame best_idx - k + j (NaN where outside the stack, and
+        # for a pixel that never had a best frame: filled, not left to whatever memory
+        # held; the fill's page faults would only move into update() otherwise)
+        self.window = np.full((2 * k + 1, *shape), np.nan, np.float32)
         self.ring: list[np.ndarray | None] = [None] * (2 * k + 1)
         self._better = np.empty(shape, bool)
         self._far = np.empty(shape, bool)

@@ -12,7 +12,8 @@ from smdinspect.errors import BoardNotLocatedError, InputError
 from smdinspect.inspect import InspectConfig, Verdict, load_board
 from smdinspect.inspect._inspect import inspect_surface
 
-from ._synthetic import ALL_DEFECTS, DEMO, DENSE, STEP_MM, expected, height_errors, truth_surface
+from ._synthetic import (ALL_DEFECTS, DEMO, DENSE, STEP_MM, expected, height_errors,
+                         inspect_placed, part_crop, truth_surface)
 
 # On an ideal height map the 97th percentile of a concave side strip reads ~0.8 of the
 # wetting height (the default 0.5 is the calibration for shape from focus).
@@ -118,3 +119,23 @@ def test_an_over_exposed_joint_says_so():
         assert j.verdict == Verdict.UNRELIABLE, j.reason
         assert ("clipped white" in j.reason) == clipped, j.reason
     assert "100% of it is clipped white" in {j.id: j for j in glint.joints}["R2.1"].reason
+
+
+@pytest.mark.parametrize("ref, jid", [("C1", "C1.1"), ("R3", "R3.1"), ("C2", "C2.2")])
+def test_a_cap_raised_by_a_tilt_under_the_limit_is_not_solder(ref, jid):
+    """A chip tilted under the tombstone limit (10 deg) raises one end cap with its body:
+    the cap is judged against the body top's measured plane, not the nominal top (before:
+    'solder over the end cap 79-269 um above the body top' at 3-5 deg, 1206 to 0402).
+    Solder over a level part's cap is still excess."""
+    board, off, shape = part_crop(DEMO, ref)
+    for tilt in (3.0, 5.0):
+        s, labels, b = truth_surface(board, f"{jid}:tombstone", seed=1, offset_mm=off,
+                                     shape=shape, params={jid: {"tilt_deg": tilt}})
+        got = {j.id: j for j in inspect_placed(s, b, labels).joints}
+        # (the lifted end's own fillet is thin: insufficient there is a true reading)
+        assert all(j.verdict != Verdict.EXCESS for j in got.values()), \
+            {k: (j.verdict.value, j.reason) for k, j in got.items()}
+    s, labels, b = truth_surface(board, f"{jid}:excess", seed=1, offset_mm=off, shape=shape,
+                                 params={jid: {"over_mm": 0.1, "style": "cap"}})
+    got = {j.id: j for j in inspect_placed(s, b, labels).joints}
+    assert got[jid].verdict == Verdict.EXCESS and "end cap" in got[jid].reason, got[jid].reason
