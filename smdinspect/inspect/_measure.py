@@ -1038,10 +1038,22 @@ def _measure_body(comp, ctx: MeasureContext, win: _Win, level: float,
                 win.rel_all
         tilt, n_tilt, plane, u2 = _body_tilt(win, middle, floor_mm=0.5 * body_top_mm(comp),
                                              at_x_mm=hl - t / 2.0)
-        # An upright part stands far above the nominal top over much of its footprint.
+        # An upright part stands far above the nominal top over much of its footprint, or,
+        # stood on end (up to 90 deg), on its end pad up to a body height beyond the
+        # body's end (other parts' footprints left out).
+        # A tall blob that reaches into another part's footprint is that part (a
+        # neighbour tombstoned towards this one leans over its end).
         top = body_top_mm(comp)
-        near = (np.abs(win.lx) <= hl + 0.1) & (np.abs(win.ly) <= hw + 0.1) & win.rel_all
-        tall = near & (win.h > top + max(0.2, 0.3 * comp.body_height_mm))
+        reach = hl + max(0.1, comp.body_height_mm + 0.1)
+        near = (np.abs(win.lx) <= reach) & (np.abs(win.ly) <= hw + 0.1) & win.rel_all
+        tall = win.rel_all & (win.h > top + max(0.2, 0.3 * comp.body_height_mm))
+        if exclude is not None and tall.any():
+            import cv2
+
+            _, lab = cv2.connectedComponents(tall.view(np.uint8), connectivity=8)
+            theirs = np.unique(lab[tall & exclude[win.sl]])
+            tall &= ~np.isin(lab, theirs[theirs > 0])
+        tall &= near
         standing = float(tall.sum() * p * p / (comp.body_length_mm * comp.body_width_mm))
     in_field = min([ctx.in_field(comp.body_polygon_mm())]
                    + [ctx.in_field(j.polygon_mm) for j in comp.joints])

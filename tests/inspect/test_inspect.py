@@ -139,3 +139,16 @@ def test_a_cap_raised_by_a_tilt_under_the_limit_is_not_solder(ref, jid):
                                  params={jid: {"over_mm": 0.1, "style": "cap"}})
     got = {j.id: j for j in inspect_placed(s, b, labels).joints}
     assert got[jid].verdict == Verdict.EXCESS and "end cap" in got[jid].reason, got[jid].reason
+
+
+@pytest.mark.parametrize("ref, jid", [("C1", "C1.1"), ("C2", "C2.2")])
+def test_a_part_stood_on_end_is_a_tombstone(ref, jid):
+    """Stood at 90 deg on one end pad, a chip leaves its footprint empty and stands a body
+    height beyond its end: it is a tombstone, not a missing part (before: 'only 39 % of
+    the body footprint stands at body height', component_missing, for the 1206)."""
+    board, off, shape = part_crop(DEMO, ref)
+    for tilt in (60.0, 90.0):
+        s, labels, b = truth_surface(board, f"{jid}:tombstone", seed=1, offset_mm=off,
+                                     shape=shape, params={jid: {"tilt_deg": tilt}})
+        (comp,) = inspect_placed(s, b, labels).components
+        assert comp.verdict == Verdict.TOMBSTONE, (tilt, comp.reason)
