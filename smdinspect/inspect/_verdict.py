@@ -88,7 +88,7 @@ import numpy as np
 
 from ._config import InspectConfig, Verdict
 from ._measure import HEEL_FIT_MIN_PIXELS, ComponentMeasurement, JointMeasurement
-from ._reference import lead_top_mm
+from ._reference import body_top_mm, lead_top_mm
 from ._result import ComponentResult, JointResult
 
 __all__ = ["MIN_IN_FIELD", "judge_component", "judge_joint"]
@@ -125,6 +125,19 @@ def _clipped_note(m: JointMeasurement) -> str:
             "lower the exposure or the lighting")
 
 
+def _lying_level(comp, m: ComponentMeasurement, config: InspectConfig) -> bool:
+    """Whether a chip's body lies where it should: present, its top's plane between the
+    terminations level (tilt within the tombstone limit) and at the nominal top height
+    (within a third of the body's height). Then what stands far above it is solder over
+    an end cap (rule 5), not the part stood up: an upright part leaves its middle empty
+    or tilted."""
+    if m.top_plane is None or not math.isfinite(m.tilt_deg):
+        return False
+    return (m.tilt_deg <= config.tombstone_tilt_deg
+            and m.present_fraction >= config.component_present_fraction
+            and abs(m.top_plane[2] - body_top_mm(comp)) <= comp.body_height_mm / 3.0)
+
+
 def judge_component(comp, m: ComponentMeasurement, config: InspectConfig) -> ComponentResult:
     """Apply the component-level rules (1–4)."""
     verdict, reason = Verdict.OK, "body present, level and in place"
@@ -132,7 +145,8 @@ def judge_component(comp, m: ComponentMeasurement, config: InspectConfig) -> Com
         verdict = Verdict.UNRELIABLE
         reason = (f"part partly outside the measured field ({m.in_field_fraction:.0%} of its "
                   f"body and pads inside); not judged")
-    elif comp.kind == "chip" and m.standing_fraction >= config.standing_fraction:
+    elif comp.kind == "chip" and m.standing_fraction >= config.standing_fraction \
+            and not _lying_level(comp, m, config):
         verdict = Verdict.TOMBSTONE
         reason = (f"part stands upright: {m.standing_fraction:.0%} of its area is far above the "
                   f"body top (>= {config.standing_fraction:.0%})")

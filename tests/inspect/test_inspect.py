@@ -152,3 +152,16 @@ def test_a_part_stood_on_end_is_a_tombstone(ref, jid):
                                      shape=shape, params={jid: {"tilt_deg": tilt}})
         (comp,) = inspect_placed(s, b, labels).components
         assert comp.verdict == Verdict.TOMBSTONE, (tilt, comp.reason)
+
+
+@pytest.mark.parametrize("ref, jid", [("C2", "C2.1"), ("R3", "R3.1")])
+def test_solder_piled_over_a_cap_of_a_level_part_is_excess_not_a_tombstone(ref, jid):
+    """0.2-0.3 mm of solder over the cap of an 0402/0603 stands 'far above the body top'
+    over 7-39 % of its area, as an upright part would; but the body lies level at its
+    height between the terminations, so it is excess (before: tombstone)."""
+    board, off, shape = part_crop(DEMO, ref)
+    for over in (0.2, 0.3):
+        s, labels, b = truth_surface(board, f"{jid}:excess", seed=1, offset_mm=off,
+                                     shape=shape, params={jid: {"over_mm": over, "style": "cap"}})
+        got = {j.id: j for j in inspect_placed(s, b, labels).joints}
+        assert got[jid].verdict == Verdict.EXCESS, (over, got[jid].reason)
