@@ -592,17 +592,17 @@ def _measure_chip(comp, joint, win: _Win, config: InspectConfig, level: float,
     # End cap: the termination's top, away from the body edge.
     t = comp.termination_length_mm
     cap = (u >= hl - t + mg) & (u <= hl - mg) & (np.abs(v_body) <= hw - mg) & win.rel_all
-    top = body_top_mm(comp)
+    cap_top = body_top_mm(comp)
     if cap.sum() >= 5:
         # Against the body top's own plane where it is measured and raised (a part tilted
         # under the tombstone limit raises one cap with it: that is not solder), less
         # its 2σ; the nominal top elsewhere.
-        ref = np.float64(top)
+        ref = np.float64(cap_top)
         if body is not None and body.top_plane is not None and np.isfinite(body.top_plane_u2_mm):
             a, b, c = body.top_plane
-            ref = np.maximum(top, a * win.lx[cap] + b * win.ly[cap] + c - body.top_plane_u2_mm)
+            ref = np.maximum(cap_top, a * win.lx[cap] + b * win.ly[cap] + c - body.top_plane_u2_mm)
         m.cap_mm = float(np.percentile(win.h[cap] - ref, 90))
-        top = float(np.mean(ref))
+        cap_top = float(np.mean(ref))
     if n_rel < 3:
         return m
     h, uu = win.h[rel], win.u[rel]
@@ -630,7 +630,7 @@ def _measure_chip(comp, joint, win: _Win, config: InspectConfig, level: float,
                 # A chip-end fillet wets the termination at most up to its top (solder
                 # over the cap is seen there directly, as cap_mm): a meniscus fitted
                 # higher is the fit overshooting, not solder.
-                ceiling = top + max(m.cap_mm if np.isfinite(m.cap_mm) else 0.0, 0.0)
+                ceiling = cap_top + max(m.cap_mm if np.isfinite(m.cap_mm) else 0.0, 0.0)
                 if F > ceiling >= pct:
                     m.max_mm, m.max_method = ceiling, "meniscus (capped at the termination top)"
     return m
@@ -1040,9 +1040,8 @@ def _measure_body(comp, ctx: MeasureContext, win: _Win, level: float,
                                              at_x_mm=hl - t / 2.0)
         # An upright part stands far above the nominal top over much of its footprint, or,
         # stood on end (up to 90 deg), on its end pad up to a body height beyond the
-        # body's end (other parts' footprints left out).
-        # A tall blob that reaches into another part's footprint is that part (a
-        # neighbour tombstoned towards this one leans over its end).
+        # body's end; a tall blob that reaches into another part's footprint is that part
+        # (a neighbour tombstoned towards this one leans over its end).
         top = body_top_mm(comp)
         reach = hl + max(0.1, comp.body_height_mm + 0.1)
         near = (np.abs(win.lx) <= reach) & (np.abs(win.ly) <= hw + 0.1) & win.rel_all
