@@ -98,7 +98,7 @@ def inspect_surface(surface, board, config: InspectConfig | None = None, *,
         err = BoardNotLocatedError(f"board {board.name!r} not located: {reg.reason}")
         err.registration = reg  # type: ignore[attr-defined]
         raise err
-    return _inspect_located(surface, board, reg, cfg, plane0=plane0, t0=t0,
+    return _inspect_located(surface, board, reg, cfg, plane0=(plane0, level0), t0=t0,
                             grids=(height, reliable, x, y))
 
 
@@ -116,7 +116,8 @@ def _inspect_located(surface, board, reg: RegistrationResult, cfg: InspectConfig
                      plane0=None, t0: float | None = None, grids=None) -> InspectionResult:
     """Steps 3 and 4 of :func:`inspect_surface` on a board already located by ``reg``.
 
-    ``plane0``: the first board plane (fitted here when not given); ``t0``: the start
+    ``plane0``: the first board plane and the heights levelled by it (fitted here when
+    not given); ``t0``: the start
     time the result's ``seconds`` counts from; ``grids``: :func:`_grids` of the surface
     when already made. The tests call it with the scene's true placement to judge the
     verdict rules on a crop around one part, where registration (which needs the
@@ -128,7 +129,8 @@ def _inspect_located(surface, board, reg: RegistrationResult, cfg: InspectConfig
     H, W = height.shape
     if plane0 is None:
         plane0 = _board_plane(x, y, height, reliable, cfg)
-    level0 = height - plane0.z_mm(x, y)
+        plane0 = plane0, height - plane0.z_mm(x, y)
+    plane0, level0 = plane0
 
     # 3. Refit the plane on the bare board only (outside every footprint).
     ctx = MeasureContext(height=level0, reliable=reliable, u_px=np.zeros_like(height),

@@ -71,8 +71,7 @@ class PeakTracker:
         # lowest focus over all frames: the curve's floor (defocused texture + noise)
         self.floor = np.full(shape, np.inf, np.float32)
         # window[j] holds F at frame best_idx - k + j (NaN where outside the stack, and
-        # for a pixel that never had a best frame: filled, not left to whatever memory
-        # held; the fill's page faults would only move into update() otherwise)
+        # for a pixel that never has a best frame)
         self.window = np.full((2 * k + 1, *shape), np.nan, np.float32)
         self.ring: list[np.ndarray | None] = [None] * (2 * k + 1)
         self._better = np.empty(shape, bool)
@@ -631,7 +630,7 @@ def level_gradient(height: np.ndarray, ok: np.ndarray, gx: np.ndarray, gy: np.nd
     """
     r = int(np.ceil(3.0 * sigma_px)) + 1
     k = np.ones((2 * r + 1, 2 * r + 1), np.uint8)
-    h = height.astype(np.float32)
+    h = np.asarray(height, np.float32)
     hi = cv2.dilate(np.where(ok, h, -np.inf).astype(np.float32), k)
     lo = cv2.erode(np.where(ok, h, np.inf).astype(np.float32), k)
     gap = np.broadcast_to(np.asarray(gap_mm, np.float32), h.shape)
@@ -643,12 +642,12 @@ def level_gradient(height: np.ndarray, ok: np.ndarray, gx: np.ndarray, gy: np.nd
     for i in range(0, ys.size, chunk):
         y, x = ys[i:i + chunk], xs[i:i + chunk]
         q = hp[(y + r)[:, None] + oy, (x + r)[:, None] + ox] - h[y, x][:, None]  # (n, K)
-        t = gap[y, x][:, None]
-        low, high = -t[:, 0], t[:, 0]
+        t = gap[y, x]
+        low, high = -t, t
         for _ in range(4 * r):  # a level can grow across the footprint at most this often
             inside = (q >= low[:, None]) & (q <= high[:, None])
-            new_low = np.min(np.where(inside, q, 0.0), axis=1) - t[:, 0]
-            new_high = np.max(np.where(inside, q, 0.0), axis=1) + t[:, 0]
+            new_low = np.min(np.where(inside, q, 0.0), axis=1) - t
+            new_high = np.max(np.where(inside, q, 0.0), axis=1) + t
             if np.array_equal(new_low, low) and np.array_equal(new_high, high):
                 break
             low, high = new_low, new_high
