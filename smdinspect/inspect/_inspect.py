@@ -102,6 +102,13 @@ def inspect_surface(surface, board, config: InspectConfig | None = None, *,
                             grids=(height, reliable, x, y))
 
 
+def _focus_window(surface) -> int:
+    """The focus window (px) the surface was measured with (its ``meta`` config); 0 when
+    none is recorded (true heights)."""
+    config = (getattr(surface, "meta", None) or {}).get("config") or {}
+    return int(config.get("window_px") or 0)
+
+
 def _grids(surface):
     """Heights (float64), the reliable mask and the WORLD x, y of every pixel (mm)."""
     p = float(surface.pixel_size_mm)
@@ -167,7 +174,7 @@ def _inspect_located(surface, board, reg: RegistrationResult, cfg: InspectConfig
                          bare=bare & (np.abs(level) <= 3 * cfg.plane_distance_mm),
                          T=reg.transform, p=p, u_plane_mm=float(u_plane), chroma=chroma,
                          bare_chroma=bare_chroma, field=field,
-                         clipped=clipped_white(surface.aif))
+                         clipped=clipped_white(surface.aif), window_px=_focus_window(surface))
 
     # 4. Measure and judge.
     jm, cm = measure_board(board, ctx, cfg)

@@ -71,6 +71,10 @@ Gaps
     (its median within ``bridge_height_mm`` of its covered z: a path straddling the
     body's edge mixes body and board heights) and stands at least
     :data:`LEVEL_PATH_BODY_GAP_MM` below the measured body top (the body's bled edge).
+    Within the mixing reach of the body's edge (:attr:`MeasureContext.mixing_mm`: half
+    the focus window + 2 px; the whole band at 20 µm/px with a 5-px window) a level is
+    only evidence of a possible web (``gap_blend_mm``): the edge's focus outweighs the
+    board's weak texture in every window there, and its height blends into theirs.
 Area, volume, mean
     Over the solder area (chips: the pad outside the grown body; gull-wing: the side
     region plus the solder standing above the nominal lead top on the foot); volume and
@@ -153,6 +157,8 @@ class JointMeasurement:
     gap_sparse_mm: float = NAN      # covered level of the pooled pixels of sparse paths
     gap_sparse_n: int = 0           # ... and how many pixels that is
     gap_sparse_neighbour: str = ""
+    gap_blend_mm: float = NAN       # chip: a level path within the body edge's mixing reach
+    gap_blend_neighbour: str = ""
     level_mm: float = 0.0           # local board level removed
     polygon_px: np.ndarray | None = field(default=None, repr=False)
 
@@ -205,6 +211,8 @@ class MeasureContext:
     clipped : (H, W) bool or None
         Pixels clipped white in the all-in-focus image
         (:func:`smdinspect.sff.clipped_white`); None: not known.
+    window_px : int
+        The focus window the heights were measured with (0: true heights, no window).
     """
 
     height: np.ndarray
@@ -218,6 +226,16 @@ class MeasureContext:
     bare_chroma: float = NAN
     field: np.ndarray | None = None
     clipped: np.ndarray | None = None
+    window_px: int = 0
+
+    @property
+    def mixing_mm(self) -> float:
+        """How far (mm) a height step's two depths mix in the heights measured next to
+        it: half the focus window, the operator's own reach (a 3-px Laplacian) and the
+        in-focus blur (about a pixel). Within it a pixel's window holds the step's
+        edge, whose focus outweighs weak texture: its height is a blend, not the
+        surface's (0 for true heights)."""
+        return (self.window_px // 2 + 2) * self.p if self.window_px else 0.0
 
     def in_field(self, poly_board: np.ndarray) -> float:
         """Share of a BOARD polygon's area inside the image and the measured field."""
@@ -866,6 +884,16 @@ def _record(joints, a: str, b: str, z: float, f: float, sparse: np.ndarray,
             m.gap_sparse_mm, m.gap_sparse_n, m.gap_sparse_neighbour = zs, int(sparse.size), other
 
 
+def _record_blend(joints, a: str, b: str, z: float) -> None:
+    """Keep a level read where a body's edge blends into the heights (a possible web)."""
+    if not np.isfinite(z):
+        return
+    for jid, other in ((a, b), (b, a)):
+        m = joints[jid]
+        if not z <= m.gap_blend_mm:
+            m.gap_blend_mm, m.gap_blend_neighbour = z, other
+
+
 def _measure_gaps(comp, win: _Win, config: InspectConfig, joints: dict[str, JointMeasurement],
                   *, others: np.ndarray | None = None, body: np.ndarray | None = None,
                   body_top_mm: float = NAN) -> None:
@@ -901,6 +929,10 @@ def _measure_gaps(comp, win: _Win, config: InspectConfig, joints: dict[str, Join
         for extra in (body, others):
             if extra is not None:
                 hug = hug | extra
+        mix = win.ctx.mixing_mm
+        mixed = (np.abs(win.lx) <= hl + mix) & (np.abs(win.ly) <= hw + mix)
+        if body is not None and mix > 0:
+            mixed |= _morph(body, mix / p, grow=True)
         for side in (-1.0, 1.0):
             ys = side * (hw + mg + np.arange(0.0, 0.1 + 1e-9, p))
             z, f, sparse = _sample_paths(win, comp, xs, ys, body_grown, config)
@@ -908,8 +940,16 @@ def _measure_gaps(comp, win: _Win, config: InspectConfig, joints: dict[str, Join
             # the band next to the body (nominal edge to body_margin_mm), where a web
             # that wets the body's side stands; the side's sparse paths pooled
             ys = side * (hw + np.arange(0.0, mg - 1e-9, p))
+            below = body_top_mm - LEVEL_PATH_BODY_GAP_MM
             z, f, band = _sample_paths(win, comp, xs, ys, hug, config, level=True,
-                                       below_mm=body_top_mm - LEVEL_PATH_BODY_GAP_MM)
+                                       below_mm=below)
+            if mixed.any():
+                # within the mixing reach of the body's edge a level may be that edge
+                # blended with the board: evidence of a possible web, not a measurement;
+                # only the band beyond the reach measures one
+                _record_blend(joints, a.id, b.id, z)
+                z, f, _ = _sample_paths(win, comp, xs, ys, hug | mixed, config, level=True,
+                                        below_mm=below)
             _record(joints, a.id, b.id, z, f, np.concatenate([sparse, band]), config)
         return
     groups: dict[tuple[float, float], list] = {}

@@ -248,6 +248,15 @@ def judge_joint(joint, comp, m: JointMeasurement, comp_result: ComponentResult,
                 f"sparsely measured to read, and {config.bridge_min_fraction:.0%} of the "
                 f"{m.gap_sparse_n} pixels measured there stand above {_um(m.gap_sparse_mm)} "
                 f"(> {_um(bridge)}); not judged ({reason})")
+        elif v == Verdict.OK and m.gap_blend_mm > bridge:
+            # Only where the body's edge blends into the heights (within the focus
+            # window's reach of it) does the gap stand high: a web wetting the body's
+            # side, or the body's edge itself; shape from focus cannot tell them apart.
+            v, reason = Verdict.UNRELIABLE, (
+                f"possible bridge to {m.gap_blend_neighbour}: a path next to the body "
+                f"stands level at {_um(m.gap_blend_mm)} (> {_um(bridge)}), but within "
+                f"the focus window's reach of the body's edge, whose height blends into "
+                f"it there; not judged ({reason})")
     method = m.max_method
     if method == "meniscus" and m.fillet_reach < config.min_fillet_reach:
         method = f"meniscus (extrapolated, reach {m.fillet_reach:.0%})"

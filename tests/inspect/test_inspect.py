@@ -165,3 +165,36 @@ def test_solder_piled_over_a_cap_of_a_level_part_is_excess_not_a_tombstone(ref, 
                                      shape=shape, params={jid: {"over_mm": over, "style": "cap"}})
         got = {j.id: j for j in inspect_placed(s, b, labels).joints}
         assert got[jid].verdict == Verdict.EXCESS, (over, got[jid].reason)
+
+
+@pytest.mark.parametrize("window_px, verdict", [(5, Verdict.UNRELIABLE), (0, Verdict.BRIDGE)])
+def test_a_level_band_within_the_window_reach_of_a_body_is_a_possible_bridge(window_px, verdict):
+    """A level path 40-60 µm beside a chip's body, between its pads, at 0.25 mm: a web
+    wetting the body's side, or the body's edge blended into the board by the focus
+    window (a 5-px window reaches (2 + 2) px = 80 µm at 20 µm/px). Measured through a
+    5-px window it is a possible bridge, not judged; on true heights (no window) it is
+    a bridge."""
+    import dataclasses
+
+    from smdinspect.inspect._geometry import apply2d, polygon_mask, world_to_pixel
+
+    board, off, shape = part_crop(DEMO, "R1")
+    s, labels, b = truth_surface(board, "", seed=3, offset_mm=off, shape=shape,
+                                 hole_fraction=0.0)
+    part = b.component("R1")
+    hl, hw = part.body_length_mm / 2, part.body_width_mm / 2
+    inner = min(float(np.min(np.abs(part.to_local(j.polygon_mm)[:, 0]))) for j in part.joints)
+    band = part.to_board(np.array([[-inner, hw + 0.04], [inner, hw + 0.04],
+                                   [inner, hw + 0.06], [-inner, hw + 0.06]]))
+    T = np.array(labels["placement"]["board_to_world"])
+    m = polygon_mask(world_to_pixel(apply2d(T, band), shape=s.height_mm.shape,
+                                    pixel_size_mm=s.pixel_size_mm), s.height_mm.shape)
+    h = np.array(s.height_mm)
+    h[m] = 0.25
+    s = dataclasses.replace(s, height_mm=h, meta={"config": {"window_px": window_px}})
+    got = {j.id: j for j in inspect_placed(s, b, labels).joints}
+    for jid in ("R1.1", "R1.2"):
+        assert got[jid].verdict == verdict, (jid, got[jid].reason)
+        if verdict == Verdict.UNRELIABLE:
+            assert "possible bridge" in got[jid].reason
+            assert "focus window's reach" in got[jid].reason
