@@ -57,6 +57,9 @@ PREFILTER_SAMPLE_FRAMES = 9
 BAND_MARGIN_PX = 128
 #: Band cores start on multiples of this (the largest coarse block, 4²).
 BAND_ALIGN_PX = 16
+#: Side of the square in which a height step is looked for (:func:`step_levels`; the
+#: default of :func:`depth_edge_mask`).
+EDGE_SPAN_PX = 5
 
 
 def to_gray(image: np.ndarray) -> np.ndarray:
@@ -444,13 +447,18 @@ def _measure(run: "_Run", band: tuple[int, int, int, int], *,
     if config.edge_jump_steps > 0:
         jump = config.edge_jump_steps * stack.step_mm
         wide = config.window_px + 2 if config.edge_gap_check else 0
-        edges = depth_edge_mask(height, confidence >= config.min_confidence, jump_mm=jump,
-                                radius_px=config.window_px // 2 + 1, wide_span_px=wide)
+        reliable = confidence >= config.min_confidence
+        # the steps are found once; each level judges them at its own radius
+        levels = step_levels(height, reliable, jump_mm=jump, span_px=EDGE_SPAN_PX)
+        edges = depth_edge_mask(height, reliable, jump_mm=jump, span_px=EDGE_SPAN_PX,
+                                radius_px=config.window_px // 2 + 1, wide_span_px=wide,
+                                levels=levels)
         for level, use in zip(coarse, filled):
             if use.any():  # a coarse window bleeds the higher side over half its width
                 edges |= use & depth_edge_mask(
-                    height, confidence >= config.min_confidence, jump_mm=jump,
-                    radius_px=level.window_px // 2 + 1)
+                    height, reliable, jump_mm=jump, span_px=EDGE_SPAN_PX,
+                    radius_px=level.window_px // 2 + 1, levels=levels)
+        del levels
         confidence[edges] = 0.0
     reliable = confidence >= config.min_confidence
     if config.support_steps > 0:
@@ -970,7 +978,7 @@ def _energy_offset_px(energy: np.ndarray, window_px: int) -> tuple[np.ndarray, n
 
 def _near_step(height, reliable, *, jump_mm: float, radius_px: int) -> np.ndarray:
     """Pixels within ``radius_px`` of a height step, either side (:func:`step_levels`)."""
-    step = np.isfinite(step_levels(height, reliable, jump_mm=jump_mm, span_px=5))
+    step = np.isfinite(step_levels(height, reliable, jump_mm=jump_mm, span_px=EDGE_SPAN_PX))
     if not step.any():
         return step
     # Euclidean distance to the nearest step pixel (a dilation by a disc, in O(1) a pixel)
