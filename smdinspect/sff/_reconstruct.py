@@ -1001,9 +1001,17 @@ def _near_step(height, reliable, *, jump_mm: float, radius_px: int) -> np.ndarra
     step = np.isfinite(step_levels(height, reliable, jump_mm=jump_mm, span_px=EDGE_SPAN_PX))
     if not step.any():
         return step
-    # Euclidean distance to the nearest step pixel (a dilation by a disc, in O(1) a pixel)
-    dist = cv2.distanceTransform((~step).view(np.uint8), cv2.DIST_L2, cv2.DIST_MASK_PRECISE)
-    return dist <= radius_px
+    # Euclidean distance to the nearest step pixel (a dilation by a disc, in O(1) a
+    # pixel), over the steps' bounding box grown by the radius: a pixel beyond it is
+    # farther than the radius from every step, and inside it every step is in the box
+    rows, cols = np.flatnonzero(step.any(axis=1)), np.flatnonzero(step.any(axis=0))
+    box = (slice(max(0, rows[0] - radius_px), rows[-1] + radius_px + 1),
+           slice(max(0, cols[0] - radius_px), cols[-1] + radius_px + 1))
+    dist = cv2.distanceTransform((~step[box]).view(np.uint8), cv2.DIST_L2,
+                                 cv2.DIST_MASK_PRECISE)
+    near = np.zeros_like(step)
+    near[box] = dist <= radius_px
+    return near
 
 
 def _mismatch(path, shape, first, ref_shape) -> InputError:
