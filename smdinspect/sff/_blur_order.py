@@ -36,9 +36,11 @@ A second pass over the frames, after the fit, and only where the check is judged
 pixel's pairs are the ones around its final best frame, so nothing needs tracking while
 the focus is streamed (where it is not judged — telecentric boards, fine steps — it
 costs nothing; run in the stream, it cost 5–7 ms of the main thread per 1-Mpixel
-frame whether judged or not). The pass decodes and aligns every frame again (in worker
-threads) and keeps the reduced grey of one frame and its blurs; about 50 ms per
-3-Mpixel frame besides the decoding.
+frame whether judged or not). The pass takes each frame's reduced grey from the stream
+when the stream kept it (:data:`~smdinspect.sff._reconstruct.ORDER_CACHE_BYTES`; a grid
+measured whole), else decodes and aligns the frame again (in worker threads); it keeps
+the reduced grey of one frame and its blurs; about 50 ms per 3-Mpixel frame besides the
+decoding.
 """
 
 from __future__ import annotations

@@ -228,7 +228,8 @@ def step_levels(height_mm: np.ndarray, reliable: np.ndarray, *, jump_mm: float,
 
 
 def depth_edge_mask(height_mm: np.ndarray, reliable: np.ndarray, *, jump_mm: float,
-                    radius_px: int, span_px: int = 5, wide_span_px: int = 0) -> np.ndarray:
+                    radius_px: int, span_px: int = 5, wide_span_px: int = 0,
+                    levels: np.ndarray | None = None) -> np.ndarray:
     """(H, W) bool: pixels within ``radius_px`` of a height step, on its high side.
 
     A step is where the reliable heights inside a ``span_px`` square differ by more than
@@ -244,14 +245,20 @@ def depth_edge_mask(height_mm: np.ndarray, reliable: np.ndarray, *, jump_mm: flo
     second square of that side looks across such gaps, for a rise of more than
     ``jump_mm`` · wide/span (the same slope: a steep fillet is no more a step in the
     wide square than in the narrow one).
-    """
-    import cv2
 
-    h = height_mm.astype(np.float32)
-    level = step_levels(h, reliable, jump_mm=jump_mm, span_px=span_px)
+    ``levels``, when given, is ``step_levels(height_mm, reliable, jump_mm=jump_mm,
+    span_px=span_px)`` already computed (one map judged at several radii); it is not
+    modified.
+    """
+    h = height_mm.astype(np.float32, copy=False)
+    if levels is None:
+        level = step_levels(h, reliable, jump_mm=jump_mm, span_px=span_px)
+    else:
+        level = levels
     if wide_span_px > span_px:
-        np.maximum(level, step_levels(h, reliable, jump_mm=jump_mm * wide_span_px / span_px,
-                                      span_px=wide_span_px), out=level)
+        level = np.maximum(level, step_levels(h, reliable,
+                                              jump_mm=jump_mm * wide_span_px / span_px,
+                                              span_px=wide_span_px))
     with np.errstate(invalid="ignore", over="ignore"):
         if not np.isfinite(level).any():
             return np.zeros(h.shape, bool)
@@ -269,7 +276,32 @@ def dilate_disc(image: np.ndarray, radius_px: int) -> np.ndarray:
     a rectangle's dilation is separable (O(1) per pixel at any size), so the max of those
     dilations is the disc's exactly, at 2× (r = 45 px) the speed of OpenCV's
     point-by-point pass over the disc.
+
+    Pixels farther than the radius (in rows or columns) from every value above −inf
+    stay −inf, so only the bounding box of those values, grown by the radius, is
+    dilated: a map of step levels (:func:`step_levels`) is −inf but near its few steps
+    (pcb-oblique: 19 of 3.1 Mpixel; r = 45 px took 0.3-0.5 s over the whole map). The
+    grown box's own edges are −inf where they are not the image's, so its replicated
+    border adds nothing the image does not hold. (An image holding NaN, which has no
+    order under max, is dilated whole as before.)
     """
+    rows = np.flatnonzero((image != -np.inf).any(axis=1))
+    if rows.size == 0:
+        return np.full_like(image, -np.inf)
+    if np.isnan(image[rows[0]:rows[-1] + 1]).any():
+        return _dilate_disc(image, radius_px)
+    cols = np.flatnonzero((image[rows[0]:rows[-1] + 1] != -np.inf).any(axis=0))
+    box = (slice(max(0, rows[0] - radius_px), rows[-1] + radius_px + 1),
+           slice(max(0, cols[0] - radius_px), cols[-1] + radius_px + 1))
+    if image[box].size == image.size:
+        return _dilate_disc(image, radius_px)
+    out = np.full_like(image, -np.inf)
+    out[box] = _dilate_disc(image[box], radius_px)
+    return out
+
+
+def _dilate_disc(image: np.ndarray, radius_px: int) -> np.ndarray:
+    """:func:`dilate_disc` over the whole of ``image``."""
     import cv2
 
     side = 2 * radius_px + 1

@@ -365,13 +365,14 @@ def _fit_block(best_idx, window, alternative, best, floor, z_mm, *, k: int,
     # sample positions relative to the peak frame, in units of the median step
     z_pad = np.concatenate([np.full(k, np.nan), z_mm, np.full(k, np.nan)]) / step
     z0 = z_mm[kb]
-    zs0 = z0 / step
+    frames = np.arange(n)
 
     u_cache: dict[int, np.ndarray] = {}
 
     def u_at(j: int) -> np.ndarray:
         if j not in u_cache:
-            u_cache[j] = (np.take(z_pad, kb + j) - zs0).astype(np.float32)
+            # a function of the peak frame alone: made once a frame, then looked up
+            u_cache[j] = np.take((z_pad[frames + j] - z_mm / step).astype(np.float32), kb)
         return u_cache[j]
 
     floor = np.where(np.isfinite(floor), floor, 0).astype(np.float32)

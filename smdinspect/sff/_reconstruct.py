@@ -17,6 +17,7 @@ from .._malloc import release_free_memory
 from ..errors import InputError
 from ..stack import FocalStack
 from ._align import Alignment, estimate_alignment
+from ._blur_order import FACTOR as ORDER_FACTOR
 from ._blur_order import SIGMAS_PX, blur_order_suspect, reduce_frame
 from ._config import FitMethod, FocusConfig
 from ._confidence import (PRECISION_BOX_WINDOWS, blur_px_per_frame, borrowed_mask,
@@ -40,6 +41,8 @@ MEAN_GREY = 128.0
 MAGNIFICATION_TREND_WARN = 0.01
 #: Decoded frames the alignment pre-pass may keep for the main pass (bytes).
 FRAME_CACHE_BYTES = 256 * 2**20
+#: Reduced grey frames the stream may keep for the blur-order check's pass (bytes).
+ORDER_CACHE_BYTES = 64 * 2**20
 #: A share of the field sharpest on the lowest or highest frame (the scene extends beyond
 #: the sweep there) from which reconstruct() warns and names the end to extend.
 BEYOND_SWEEP_WARN = 0.05
@@ -57,6 +60,9 @@ PREFILTER_SAMPLE_FRAMES = 9
 BAND_MARGIN_PX = 128
 #: Band cores start on multiples of this (the largest coarse block, 4²).
 BAND_ALIGN_PX = 16
+#: Side of the square in which a height step is looked for (:func:`step_levels`; the
+#: default of :func:`depth_edge_mask`).
+EDGE_SPAN_PX = 5
 
 
 def to_gray(image: np.ndarray) -> np.ndarray:
@@ -231,6 +237,17 @@ def _measure(run: "_Run", band: tuple[int, int, int, int], *,
 
     # Σ Mx and Σ My of the frames (for the centroid correction), summed in the workers
     moment_sums = _FrameOrderSums(n) if moments_wanted else None
+    # The blur-order check's pass after the fit wants every frame aligned and reduced
+    # (reduce_frame): the workers make it from the frame they have just aligned, for the
+    # first frames that fit ORDER_CACHE_BYTES (a 2048x1536 frame: 3 MiB), instead of the
+    # pass decoding and aligning the frame again (pcb-oblique: 33 of its 42 ms a frame).
+    # When the check is not judged they cost the reduction (9 ms). One band only: a
+    # band's frames are aligned from other crops of them here than in the pass.
+    reduced: dict[int, np.ndarray] = {}
+    keep_reduced = 0
+    if config.blur_order_ratio > 0 and rows is None:
+        h2, w2 = run.shape[0] // ORDER_FACTOR, run.shape[1] // ORDER_FACTOR
+        keep_reduced = ORDER_CACHE_BYTES // max(1, h2 * w2 * np.dtype(np.float32).itemsize)
 
     def load(i: int):
         moments = None  # stays None when the frame fails: the next frames must not wait
@@ -322,6 +339,8 @@ def _measure(run: "_Run", band: tuple[int, int, int, int], *,
             if own is not None:
                 own = warp(own)
             image = warp(image)
+        if i < keep_reduced:
+            reduced[i] = reduce_frame(image)
         small = [_CoarseLevel.reduce(focus, f)  # in the worker
                  for f in decided["coarse_factors"]]
         return image, focus, small, own, (None if mx is None else (mx, my))
@@ -373,6 +392,9 @@ def _measure(run: "_Run", band: tuple[int, int, int, int], *,
         def order(best_idx: np.ndarray) -> np.ndarray:
             """The blur-order check's second pass over the (aligned) frames."""
             def read_reduced(i: int) -> np.ndarray:
+                kept = reduced.pop(i, None)
+                if kept is not None:
+                    return kept
                 image = stack.read_frame(i)
                 if alignment is not None:
                     src = 0
@@ -392,6 +414,7 @@ def _measure(run: "_Run", band: tuple[int, int, int, int], *,
         tracker, z_mm, config, window_px=config.window_px, halo_radius_px=config.window_px + 2,
         noise_gain=noise_gain, own_px=own_px, decided=decided, grid_rows=(lo, run.shape[0]),
         order=order, order_out=order_out)
+    reduced.clear()  # what the check did not take (it was not judged)
     field = np.ones(tracker.shape, bool)
     if alignment is not None:
         field = alignment.field if rows is None else alignment.field[lo:hi]
@@ -444,13 +467,18 @@ def _measure(run: "_Run", band: tuple[int, int, int, int], *,
     if config.edge_jump_steps > 0:
         jump = config.edge_jump_steps * stack.step_mm
         wide = config.window_px + 2 if config.edge_gap_check else 0
-        edges = depth_edge_mask(height, confidence >= config.min_confidence, jump_mm=jump,
-                                radius_px=config.window_px // 2 + 1, wide_span_px=wide)
+        reliable = confidence >= config.min_confidence
+        # the steps are found once; each level judges them at its own radius
+        levels = step_levels(height, reliable, jump_mm=jump, span_px=EDGE_SPAN_PX)
+        edges = depth_edge_mask(height, reliable, jump_mm=jump, span_px=EDGE_SPAN_PX,
+                                radius_px=config.window_px // 2 + 1, wide_span_px=wide,
+                                levels=levels)
         for level, use in zip(coarse, filled):
             if use.any():  # a coarse window bleeds the higher side over half its width
                 edges |= use & depth_edge_mask(
-                    height, confidence >= config.min_confidence, jump_mm=jump,
-                    radius_px=level.window_px // 2 + 1)
+                    height, reliable, jump_mm=jump, span_px=EDGE_SPAN_PX,
+                    radius_px=level.window_px // 2 + 1, levels=levels)
+        del levels
         confidence[edges] = 0.0
     reliable = confidence >= config.min_confidence
     if config.support_steps > 0:
@@ -970,12 +998,20 @@ def _energy_offset_px(energy: np.ndarray, window_px: int) -> tuple[np.ndarray, n
 
 def _near_step(height, reliable, *, jump_mm: float, radius_px: int) -> np.ndarray:
     """Pixels within ``radius_px`` of a height step, either side (:func:`step_levels`)."""
-    step = np.isfinite(step_levels(height, reliable, jump_mm=jump_mm, span_px=5))
+    step = np.isfinite(step_levels(height, reliable, jump_mm=jump_mm, span_px=EDGE_SPAN_PX))
     if not step.any():
         return step
-    # Euclidean distance to the nearest step pixel (a dilation by a disc, in O(1) a pixel)
-    dist = cv2.distanceTransform((~step).view(np.uint8), cv2.DIST_L2, cv2.DIST_MASK_PRECISE)
-    return dist <= radius_px
+    # Euclidean distance to the nearest step pixel (a dilation by a disc, in O(1) a
+    # pixel), over the steps' bounding box grown by the radius: a pixel beyond it is
+    # farther than the radius from every step, and inside it every step is in the box
+    rows, cols = np.flatnonzero(step.any(axis=1)), np.flatnonzero(step.any(axis=0))
+    box = (slice(max(0, rows[0] - radius_px), rows[-1] + radius_px + 1),
+           slice(max(0, cols[0] - radius_px), cols[-1] + radius_px + 1))
+    dist = cv2.distanceTransform((~step[box]).view(np.uint8), cv2.DIST_L2,
+                                 cv2.DIST_MASK_PRECISE)
+    near = np.zeros_like(step)
+    near[box] = dist <= radius_px
+    return near
 
 
 def _mismatch(path, shape, first, ref_shape) -> InputError:

@@ -104,3 +104,23 @@ def test_second_level_leaves_a_cap_narrower_than_its_footprint_unfilled(tmp_path
         err = np.abs(s.height_mm - height)[s.reliable] / step
         assert np.mean(err <= 1) >= 0.98, (s.coverage, np.mean(err <= 1))
     assert two.reliable.sum() >= one.reliable.sum()
+
+
+@pytest.mark.parametrize("radius_px", [3, 44])
+def test_near_step_equals_the_whole_map_distance(radius_px):
+    """_near_step measures distances over the steps' bounding box grown by the radius:
+    the same pixels as the Euclidean distance over the whole map."""
+    import cv2
+
+    from smdinspect.sff._confidence import step_levels
+    from smdinspect.sff._reconstruct import _near_step
+
+    rng = np.random.default_rng(radius_px)
+    height = np.zeros((160, 220), np.float32)
+    height[60:75, 90:120] = 1.0  # a part inside the map
+    height[:6, 200:] = 1.0  # and one at a corner
+    reliable = rng.random(height.shape) < 0.9
+    step = np.isfinite(step_levels(height, reliable, jump_mm=0.5, span_px=5))
+    dist = cv2.distanceTransform((~step).view(np.uint8), cv2.DIST_L2, cv2.DIST_MASK_PRECISE)
+    got = _near_step(height, reliable, jump_mm=0.5, radius_px=radius_px)
+    assert got.any() and np.array_equal(got, dist <= radius_px)

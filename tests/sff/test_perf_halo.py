@@ -129,3 +129,40 @@ def test_dilate_disc_equals_opencv_disc(radius_px):
     disk = cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (2 * radius_px + 1,) * 2)
     want = cv2.dilate(level, disk, borderType=cv2.BORDER_REPLICATE)
     assert np.array_equal(dilate_disc(level, radius_px), want)
+
+
+@pytest.mark.parametrize("radius_px", [5, 15, 45])
+@pytest.mark.parametrize("where", ["inside", "corner", "none"])
+def test_dilate_disc_of_a_few_steps_equals_opencv_disc(radius_px, where):
+    """Only the steps' bounding box grown by the radius is dilated: the same as OpenCV's
+    elliptic kernel over the whole map, wherever the steps lie (away from the borders,
+    at a corner, none at all)."""
+    from smdinspect.sff._confidence import dilate_disc
+
+    rng = np.random.default_rng(radius_px)
+    level = np.full((240, 310), -np.inf, np.float32)
+    rows, cols = {"inside": (slice(100, 130), slice(140, 150)),
+                  "corner": (slice(0, 6), slice(300, 310)), "none": (slice(0, 0),) * 2}[where]
+    block = level[rows, cols]
+    block[rng.random(block.shape) < 0.2] = rng.random(1).astype(np.float32)
+    disk = cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (2 * radius_px + 1,) * 2)
+    want = cv2.dilate(level, disk, borderType=cv2.BORDER_REPLICATE)
+    assert np.array_equal(dilate_disc(level, radius_px), want)
+
+
+def test_depth_edge_mask_with_levels_given_is_the_same():
+    from smdinspect.sff._confidence import depth_edge_mask, step_levels
+
+    rng = np.random.default_rng(3)
+    h = np.where(rng.random((120, 160)) < 0.01, 1.0, 0.0).astype(np.float32)
+    h = cv2.GaussianBlur(h, (0, 0), 2.0) * np.float32(40)
+    ok = rng.random(h.shape) < 0.8
+    levels = step_levels(h, ok, jump_mm=0.15, span_px=5)
+    kept = levels.copy()
+    for radius_px, wide in ((5, 11), (15, 0), (45, 0)):
+        want = depth_edge_mask(h, ok, jump_mm=0.15, radius_px=radius_px, wide_span_px=wide)
+        assert want.any()
+        got = depth_edge_mask(h, ok, jump_mm=0.15, radius_px=radius_px, wide_span_px=wide,
+                              levels=levels)
+        assert np.array_equal(got, want)
+    assert np.array_equal(levels, kept)  # not modified
