@@ -111,7 +111,7 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from ._config import InspectConfig
-from ._features import body_blob
+from ._features import body_blob, presence_threshold_mm
 from ._geometry import apply2d, pixel_to_world, polygon_mask, world_to_pixel
 from ._reference import body_top_mm, lead_top_mm
 
@@ -1014,6 +1014,43 @@ def _sample_board(win: _Win, pts: np.ndarray, exclude: np.ndarray, config: Inspe
 # --------------------------------------------------------------------------------------
 
 
+def _body_middle(win: _Win, lo: np.ndarray, hi: np.ndarray, size: np.ndarray,
+                 top_mm: float, p: float) -> np.ndarray:
+    """The body's middle in the part's frame (x, y), from its blob's extent ``lo`` ..
+    ``hi`` on each axis; NaN on an axis where it is not seen.
+
+    The body is rigid and its ``size`` known. Its blob's 2nd..98th percentiles span 96 %
+    of it, less a pixel and up to the mixing reach at each end
+    (:attr:`MeasureContext.mixing_mm`: there the body's height blends into its
+    surroundings' and may fall below the presence level); where the blob spans that much the middle is halfway between the
+    ends. A shorter blob stops where the measurement stops (an unreliable body middle)
+    at one end or both: an end is seen where the 3 px beyond it, across the blob, are
+    mostly reliable and below ``top_mm`` (the body's edge, down to the board or the
+    solder), and the middle is then half the size from the seen end. Neither end seen
+    (or both, in a blob too short for the body): NaN.
+    """
+    mid = (lo + hi) / 2.0
+    local = (win.lx, win.ly)
+    for ax in (0, 1):
+        if hi[ax] - lo[ax] >= 0.96 * size[ax] - 2 * (win.ctx.mixing_mm + p):
+            continue
+        u, v = local[ax], local[1 - ax]
+        across = (v >= lo[1 - ax]) & (v <= hi[1 - ax])
+        seen = []
+        for end, sign in ((hi[ax], 1.0), (lo[ax], -1.0)):
+            strip = across & (sign * (u - end) > 0) & (sign * (u - end) <= 3 * p)
+            rel = strip & win.rel_all
+            seen.append(rel.sum() >= 0.5 * max(strip.sum(), 1)
+                        and np.mean(win.h[rel] < top_mm) >= 0.5)
+        if seen[0] and not seen[1]:
+            mid[ax] = hi[ax] - size[ax] / 2.0
+        elif seen[1] and not seen[0]:
+            mid[ax] = lo[ax] + size[ax] / 2.0
+        elif not (seen[0] and seen[1]):
+            mid[ax] = NAN
+    return mid
+
+
 def _measure_body(comp, ctx: MeasureContext, win: _Win, level: float,
                   config: InspectConfig, *, exclude: np.ndarray | None = None) -> ComponentMeasurement:
     """Presence, centroid offset, tilt and upright area of the component body.
@@ -1052,8 +1089,10 @@ def _measure_body(comp, ctx: MeasureContext, win: _Win, level: float,
         rows, cols = np.nonzero(blob)
         loc = comp.to_local(ctx.px_to_board(cols, rows))
         lo, hi = np.percentile(loc, 2, axis=0), np.percentile(loc, 98, axis=0)
-        cen = comp.to_board([(lo + hi) / 2.0])[0]
-        offset = (float(cen[0] - comp.x_mm), float(cen[1] - comp.y_mm))
+        mid = _body_middle(win, lo, hi, np.array([hl, hw]) * 2, presence_threshold_mm(comp), p)
+        if np.isfinite(mid).all():
+            cen = comp.to_board([mid])[0]
+            offset = (float(cen[0] - comp.x_mm), float(cen[1] - comp.y_mm))
     tilt = NAN
     standing = 0.0
     n_tilt = 0

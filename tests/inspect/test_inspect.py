@@ -198,3 +198,30 @@ def test_a_level_band_within_the_window_reach_of_a_body_is_a_possible_bridge(win
         if verdict == Verdict.UNRELIABLE:
             assert "possible bridge" in got[jid].reason
             assert "focus window's reach" in got[jid].reason
+
+
+def test_a_body_seen_at_one_end_only_is_placed_from_that_end():
+    """A 1.0 x 0.5 mm body whose middle and left end are unmeasured: its blob spans
+    0.1 .. 0.5 mm. Where the 3 px beyond its right end read board level, the body is
+    placed half its length from that end (middle at 0, not at 0.3: no false shift);
+    with nothing measured beyond either end its position along the axis is unknown."""
+    from types import SimpleNamespace
+
+    from smdinspect.inspect._measure import _body_middle
+
+    p = 0.02
+    y, x = np.mgrid[-0.5:0.5 + 1e-9:p, -0.8:0.8 + 1e-9:p]
+    body = (np.abs(x) <= 0.5) & (np.abs(y) <= 0.25)
+    h = np.where(body, 0.45, 0.0)
+    rel = ~body | (x >= 0.1)  # the body's middle and left end unreliable
+    win = SimpleNamespace(lx=x, ly=y, h=h, rel_all=rel,
+                          ctx=SimpleNamespace(mixing_mm=0.08))
+    lo, hi = np.array([0.1, -0.24]), np.array([0.5, 0.24])
+    mid = _body_middle(win, lo, hi, np.array([1.0, 0.5]), 0.2, p)
+    assert abs(mid[0]) < 1e-9 and abs(mid[1]) < 1e-9
+    win.rel_all = rel & ~((x > 0.5) & (x <= 0.6))  # nothing measured beyond the right end
+    assert np.isnan(_body_middle(win, lo, hi, np.array([1.0, 0.5]), 0.2, p)[0])
+    # a blob that spans the body: halfway between its ends
+    mid = _body_middle(win, np.array([-0.47, -0.24]), np.array([0.49, 0.24]),
+                       np.array([1.0, 0.5]), 0.2, p)
+    assert abs(mid[0] - 0.01) < 1e-9
