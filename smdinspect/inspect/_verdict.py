@@ -239,24 +239,9 @@ def judge_joint(joint, comp, m: JointMeasurement, comp_result: ComponentResult,
             f"({min(component_in_field, m.in_field_fraction):.0%} inside); not judged")
     else:
         v, reason = _joint_rule(joint, comp, m, comp_result, config)
-        bridge = _bridge_limit(comp, config)
-        if v == Verdict.OK and m.gap_sparse_mm > bridge:
-            # Too little of the gap is measured to read a path, but what is measured
-            # stands at solder height: a pass would ignore a possible bridge.
-            v, reason = Verdict.UNRELIABLE, (
-                f"possible bridge to {m.gap_sparse_neighbour}: the gap's paths are too "
-                f"sparsely measured to read, and {config.bridge_min_fraction:.0%} of the "
-                f"{m.gap_sparse_n} pixels measured there stand above {_um(m.gap_sparse_mm)} "
-                f"(> {_um(bridge)}); not judged ({reason})")
-        elif v == Verdict.OK and m.gap_blend_mm > bridge:
-            # Only where the body's edge blends into the heights (within the focus
-            # window's reach of it) does the gap stand high: a web wetting the body's
-            # side, or the body's edge itself; shape from focus cannot tell them apart.
-            v, reason = Verdict.UNRELIABLE, (
-                f"possible bridge to {m.gap_blend_neighbour}: a path next to the body "
-                f"stands level at {_um(m.gap_blend_mm)} (> {_um(bridge)}), but within "
-                f"the focus window's reach of the body's edge, whose height blends into "
-                f"it there; not judged ({reason})")
+        possible = _possible_bridge(m, _bridge_limit(comp, config), config)
+        if v == Verdict.OK and possible:
+            v, reason = Verdict.UNRELIABLE, f"possible bridge to {possible}; not judged ({reason})"
     method = m.max_method
     if method == "meniscus" and m.fillet_reach < config.min_fillet_reach:
         method = f"meniscus (extrapolated, reach {m.fillet_reach:.0%})"
@@ -322,6 +307,25 @@ def _under_lead(comp, m: JointMeasurement) -> tuple[float, float, str]:
     if math.isfinite(m.toe_mm):
         return underside, m.toe_mm, "beyond its toe"
     return underside, (m.side_mm if math.isfinite(m.side_mm) else 0.0), "beside it"
+
+
+def _possible_bridge(m: JointMeasurement, bridge: float, config: InspectConfig) -> str:
+    """The neighbour and why, when a gap shows solder above ``bridge`` that is not a
+    measurement of it ("" when none): a pass would ignore a possible bridge."""
+    if m.gap_sparse_mm > bridge:
+        # too little of the gap is measured to read a path, but what is measured stands
+        # at solder height
+        return (f"{m.gap_sparse_neighbour}: the gap's paths are too sparsely measured to "
+                f"read, and {config.bridge_min_fraction:.0%} of the {m.gap_sparse_n} pixels "
+                f"measured there stand above {_um(m.gap_sparse_mm)} (> {_um(bridge)})")
+    if m.gap_blend_mm > bridge:
+        # only where the body's edge blends into the heights (within the focus window's
+        # reach of it) does the gap stand high: a web wetting the body's side, or the
+        # body's edge itself; shape from focus cannot tell them apart
+        return (f"{m.gap_blend_neighbour}: a path next to the body stands level at "
+                f"{_um(m.gap_blend_mm)} (> {_um(bridge)}), but within the focus window's "
+                f"reach of the body's edge, whose height blends into it there")
+    return ""
 
 
 def _bridge_limit(comp, config: InspectConfig) -> float:
