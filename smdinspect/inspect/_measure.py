@@ -1023,8 +1023,8 @@ def _body_middle(win: _Win, lo: np.ndarray, hi: np.ndarray, size: np.ndarray,
     of it, less a pixel and up to the mixing reach at each end
     (:attr:`MeasureContext.mixing_mm`: there the body's height blends into its
     surroundings' and may fall below the presence level); where the blob spans that
-    much the middle is halfway between the ends. A shorter blob stops where the measurement stops (an unreliable body middle)
-    at one end or both: an end is seen where the 3 px beyond it, across the blob, are
+    much the middle is halfway between the ends. A shorter blob stops where the
+    measurement stops (an unreliable body middle) at one end or both: an end is seen where the 3 px beyond it, across the blob, are
     mostly reliable and below ``top_mm`` (the body's edge, down to the board or the
     solder), and the middle is then half the size from the seen end. Neither end seen
     (or both, in a blob too short for the body): NaN.
