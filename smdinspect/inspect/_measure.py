@@ -147,6 +147,8 @@ class JointMeasurement:
     toe_mm: float = NAN             # gull-wing: solder just beyond the toe (median)
     in_field_fraction: float = 1.0  # share of the pad inside the measured field
     fillet_reach: float = NAN       # chip meniscus: fraction of F the fitted pixels reach
+    fillet_near_mm: float = NAN     # ... how near the termination they come (5th pct)
+    fillet_edge_mm: float = NAN     # ... where its solder area starts (+ a pixel)
     observed_mm: float = NAN        # the solder area's percentile (what the pixels show)
     bulge_mm: float = NAN           # chip, bulging fillet: the concave fit's height (overshoots)
     bare_fraction: float = NAN      # visible pad looking like bare finish (colour)
@@ -584,6 +586,7 @@ def _meniscus(d: np.ndarray, length: float, z: np.ndarray, uz: np.ndarray,
         # How far up the meniscus the data go: the model's height fraction at the
         # highest of the kept pixels (95th percentile of g, robust to a stray pixel).
         info["reach"] = float(np.percentile(g[keep], 95))
+        info["near"] = float(np.percentile(d[keep], 5))
     gk = g[keep]
     uk = uz[keep]
     uf = _propagated_u(gk, uk)
@@ -636,6 +639,7 @@ def _measure_chip(comp, joint, win: _Win, config: InspectConfig, level: float,
             info: dict = {}
             F, uF = _meniscus(u[end] - hl, length, win.h[end], win.u[end], info)
             m.fillet_reach = info.get("reach", NAN)
+            m.fillet_near_mm, m.fillet_edge_mm = info.get("near", NAN), mg + p
             if np.isfinite(F) and F > joint.max_height_mm and info.get("rel_rms", 0.0) > 0.1:
                 # Not a meniscus: a bulging (convex) fillet fits a concave model badly
                 # and the fit overshoots. Its observed percentile is a lower bound of its

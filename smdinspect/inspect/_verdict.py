@@ -59,8 +59,11 @@ Joint level
     ``min_fillet_reach`` of its height, the fillet's top was not measured and the max is
     an extrapolation. Such a joint is ``excess`` when the solder area's own percentile
     is already above the band (seen directly), ``missing`` when neither that percentile
-    nor the extrapolation reaches ``missing_height_mm`` and the fitted meniscus does not
-    rise above that percentile (a flat pad; no colour cue), ``ok`` when
+    nor the extrapolation reaches ``missing_height_mm``, the fitted meniscus does not
+    rise above that percentile and the pad is measured flat right up to where its solder
+    area starts by the termination (``body_margin_mm`` + a pixel: a fillet's toe need not
+    reach the pad's outer part, so a pad flat only there proves nothing; no colour cue),
+    ``ok`` when
     that percentile — a lower bound of the fillet height, which rises towards the
     body — already reaches the band's minimum, or when the reach is at least
     :data:`MIN_PASS_REACH` × ``min_fillet_reach`` and the extrapolation lies in the
@@ -395,12 +398,15 @@ def _joint_rule(joint, comp, m: JointMeasurement, comp_result: ComponentResult,
                                     f"(meniscus extrapolated to {_um(h)}, reach "
                                     f"{m.fillet_reach:.0%})")
         if max(seen, h) < config.missing_height_mm and not h > seen \
-                and not math.isfinite(m.bare_fraction):
-            # The pad is flat where it is measured and the meniscus fitted to it does not
-            # rise above what is seen: no fillet, no solder. A fit that rises towards the
-            # termination is a fillet whose top is hidden (an extrapolation then reads
-            # low, not high: an 0402's at this reach 40-60 % low), never "missing".
-            return Verdict.MISSING, (f"no solder: the solder area reaches {_um(seen)} and the "
+                and not math.isfinite(m.bare_fraction) and m.fillet_near_mm <= m.fillet_edge_mm:
+            # The pad is flat where it is measured, right up to where its solder area
+            # starts by the termination, and the meniscus fitted to it does not rise
+            # above what is seen: no fillet, no solder. A fit that rises is a fillet
+            # whose top is hidden (an extrapolation then reads low, not high: an 0402's
+            # at this reach 40-60 % low), and a pad flat only farther out is one whose
+            # fillet's toe stops short of the pixels measured: never "missing".
+            return Verdict.MISSING, (f"no solder: the solder area reaches {_um(seen)}, "
+                                     f"measured up to its edge by the termination, and the "
                                      f"meniscus fitted to it does not rise above it "
                                      f"({_um(h)}, reach {m.fillet_reach:.0%}); both < "
                                      f"{_um(config.missing_height_mm)}")

@@ -100,17 +100,25 @@ def test_without_colour_a_flat_pad_is_missing_and_a_low_fillet_insufficient(c2):
     assert r.verdict is Verdict.INSUFFICIENT
 
 
-def test_an_extrapolated_meniscus_that_rises_is_never_missing(c2):
-    """Only the toe of the fillet measured (reach 25 %, seen 14 µm): a meniscus fitted
-    to it that rises towards the termination (29 µm) is a fillet whose top is hidden
-    (a good 0402 on a tuning board), not a bare pad: `unreliable`. A fit that stays
-    flat or falls is a bare pad: `missing`."""
-    r = _judge(c2, max_mm=0.029, max_method="meniscus", fillet_reach=0.25, observed_mm=0.014)
+def test_an_extrapolated_meniscus_is_missing_only_where_measured_up_to_the_termination(c2):
+    """Only the toe of the fillet measured (reach 25 %, seen 14 µm). A meniscus fitted to
+    it that rises towards the termination (29 µm: a good 0402 on a tuning board) is a
+    fillet whose top is hidden: `unreliable`. One that stays flat or falls is a bare pad
+    (`missing`) only where the pixels reach the solder area's edge by the termination
+    (body margin + a pixel, 100 µm here); measured only farther out, the fillet's toe may
+    stop short of them (good 0402s of the test boards, flat 106-130 µm out): `unreliable`."""
+    edge = dict(fillet_near_mm=0.09, fillet_edge_mm=0.1)
+    r = _judge(c2, max_mm=0.029, max_method="meniscus", fillet_reach=0.25, observed_mm=0.014,
+               **edge)
     assert r.verdict is Verdict.UNRELIABLE and "fillet top not measured" in r.reason
     for fitted in (0.014, 0.005, -0.17):
         r = _judge(c2, max_mm=fitted, max_method="meniscus", fillet_reach=0.25,
-                   observed_mm=0.014)
+                   observed_mm=0.014, **edge)
         assert r.verdict is Verdict.MISSING and "does not rise" in r.reason, (fitted, r.reason)
+        r = _judge(c2, max_mm=fitted, max_method="meniscus", fillet_reach=0.25,
+                   observed_mm=0.014, fillet_near_mm=0.115, fillet_edge_mm=0.1)
+        assert r.verdict is Verdict.UNRELIABLE and "fillet top not measured" in r.reason, \
+            (fitted, r.reason)
 
 
 def test_gap_limit_is_lower_between_gull_wing_feet(c2):
