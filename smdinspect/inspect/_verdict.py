@@ -15,7 +15,10 @@ Component level (decided on the body; every joint of the component gets the verd
    over an end cap never reaches there) tilts more than ``tombstone_tilt_deg`` along
    the component's axis: any tilt from a few degrees to upright.
 2. The remaining body checks are skipped when fewer than ``min_reliable_fraction`` of
-   the body's pixels are reliable.
+   the body's pixels are reliable — except rule 3 when :data:`MIN_EVIDENCE_PIXELS` of
+   them are: inside a body's footprint only its top can be seen, so reliable pixels
+   there at board level are the board under a missing part (a bare solder mask, mostly
+   unreliable).
 3. ``component_missing``: the raised blob found near the body covers less than
    ``component_present_fraction`` of the body's reliable pixels (presence threshold:
    chips standoff + 0.8 × body height; gull-wing halfway between lead top and body top).
@@ -157,6 +160,18 @@ def judge_component(comp, m: ComponentMeasurement, config: InspectConfig) -> Com
             and m.reliable_fraction >= config.min_reliable_fraction:
         verdict = Verdict.TOMBSTONE
         reason = f"body top tilted {m.tilt_deg:.1f} deg along its axis (> {config.tombstone_tilt_deg} deg)"
+    elif m.reliable_fraction < config.min_reliable_fraction \
+            and m.n_pixels * m.reliable_fraction >= MIN_EVIDENCE_PIXELS \
+            and m.present_fraction < config.component_present_fraction:
+        # Too little of the footprint is measured to check a body, but what is measured
+        # there is not a body: only the body's top can be seen inside its footprint, so
+        # reliable pixels at board level there are the board under a missing part (a
+        # bare solder mask, weakly textured: mostly unreliable).
+        verdict = Verdict.COMPONENT_MISSING
+        reason = (f"only {m.reliable_fraction:.0%} of the body footprint is reliable, and "
+                  f"only {m.present_fraction:.0%} of its "
+                  f"{round(m.n_pixels * m.reliable_fraction)} reliable pixels stand at body "
+                  f"height (< {config.component_present_fraction:.0%}): no body there")
     elif m.reliable_fraction < config.min_reliable_fraction:
         verdict = Verdict.UNRELIABLE
         reason = (f"only {m.reliable_fraction:.0%} of the body is reliable "

@@ -257,3 +257,26 @@ def test_a_gullwing_heel_is_judged_on_its_heel_fit_whatever_the_solder_area_cove
     assert judge(lead_mm=j.max_height_mm + 0.05, max_mm=j.max_height_mm + 0.06,
                  side_mm=j.max_height_mm).verdict is Verdict.EXCESS
     assert judge(fraction=0.5, heel_n=0).verdict is Verdict.OK          # the coverage rule as before
+
+
+def test_a_footprint_measured_at_board_level_is_a_missing_part_however_little_is_reliable():
+    """A missing SOIC-8 leaves the bare solder mask under its footprint: mostly
+    unreliable (17 % here, a tuning board), and every reliable pixel at board level.
+    Too little to check a body, enough to say there is none: `component_missing`. With
+    too few reliable pixels, or with them at body height, it stays `unreliable`."""
+    from smdinspect.inspect._measure import ComponentMeasurement
+    from smdinspect.inspect._verdict import MIN_EVIDENCE_PIXELS, judge_component
+
+    u1 = load_board(DEMO).component("U1")
+    cfg = InspectConfig()
+
+    def judged(reliable, present, n=40_000):
+        m = ComponentMeasurement("U1", reliable, present, NAN, (NAN, NAN), NAN, 0.0, n)
+        return judge_component(u1, m, cfg)
+
+    r = judged(0.17, 0.0003)
+    assert r.verdict is Verdict.COMPONENT_MISSING and "no body there" in r.reason
+    assert judged(0.17, 0.9).verdict is Verdict.UNRELIABLE            # a body, seen in part
+    n_few = int(0.9 * MIN_EVIDENCE_PIXELS / 0.17)
+    assert judged(0.17, 0.0, n=n_few).verdict is Verdict.UNRELIABLE   # too little evidence
+    assert judged(0.9, 0.0).verdict is Verdict.COMPONENT_MISSING       # the usual rule
