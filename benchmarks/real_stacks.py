@@ -25,7 +25,7 @@ from pathlib import Path
 import cv2
 import numpy as np
 
-from smdinspect.sff import FocusConfig, reconstruct, render_height_png
+from smdinspect.sff import FocusConfig, reconstruct, render_height_png, render_reason_map
 from smdinspect.sff._depth import masked_gradient
 from smdinspect.stack import FocalStack
 
@@ -168,6 +168,9 @@ def figures(name: str, full, even, field: np.ndarray) -> dict:
         beyond = (full.beyond != 0) & field
         out["beyond_share"] = float(beyond.sum() / max(field.sum(), 1))
         out["coverage_within_sweep"] = float(rel.sum() / max((field & ~beyond).sum(), 1))
+    reasons = full.unreliable_reasons()
+    if reasons is not None:  # shares of the image, largest first
+        out["unreliable_reasons"] = {k: round(v, 4) for k, v in reasons.items()}
     if name == "flat-target-zknown":
         out["flat"] = flat_figures(full, field)
     return out
@@ -267,6 +270,10 @@ def report(name: str, r: dict) -> None:
     if "beyond_share" in r:
         print(f"  {100 * r['beyond_share']:.1f} % of the field is sharpest beyond an end of the "
               f"sweep; coverage of the rest {100 * r['coverage_within_sweep']:.1f} %")
+    if r.get("unreliable_reasons"):
+        print("  unreliable, by reason (reason.png): " + ", ".join(
+            f"{k.replace('_', ' ')} {100 * v:.1f} %" for k, v in r["unreliable_reasons"].items()
+            if v >= 0.001))
     if r["outliers_unjudged"] > 0:
         print(f"  ({100 * r['outliers_unjudged']:.2f} % of reliable pixels lie in blocks with too few "
               "reliable pixels: not judged)")
@@ -287,7 +294,7 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--stacks", default=",".join(STACKS), help="comma-separated subset of: %(default)s")
     p.add_argument("--repeat", type=int, default=5, help="timed runs per figure (median; default 5)")
     p.add_argument("--json", type=Path, default=None, help="also write the figures to this file")
-    p.add_argument("--pictures", type=Path, default=None, help="save aif.png and height.png here")
+    p.add_argument("--pictures", type=Path, default=None, help="save aif.png, height.png and reason.png here")
     p.add_argument("--quick", action="store_true", help="skip the CLI timing")
     p.add_argument("--data", type=Path, default=REPO.parent / "shared" / "data")
     p.add_argument("--operator", default=None, help="focus operator (default: FocusConfig's)")
@@ -339,6 +346,7 @@ def main(argv: list[str] | None = None) -> int:
             aif = full.aif if full.aif.ndim == 2 else cv2.cvtColor(full.aif, cv2.COLOR_RGB2BGR)
             cv2.imwrite(str(out / "aif.png"), aif)
             render_height_png(full, out / "height.png")
+            cv2.imwrite(str(out / "reason.png"), render_reason_map(full.reason, full.aif)[:, :, ::-1])
         report(name, r)
         results[name] = r
     load = os.getloadavg()

@@ -115,8 +115,9 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--outputs", default="all", metavar="LIST",
                    help="comma-separated files to write (default all): height_mm.tiff, "
                         "confidence.tiff, sigma_mm.tiff, aif.png, height_filled_mm.tiff, "
-                        "sigma_filled_mm.tiff, filled.png, field.png, height.png, view3d.png, "
-                        "cloud.ply, mesh.ply, mesh.stl; summary.json is always written")
+                        "sigma_filled_mm.tiff, filled.png, field.png, height.png, reason.png, "
+                        "view3d.png, cloud.ply, mesh.ply, mesh.stl; summary.json is always "
+                        "written")
     add_calibration_argument(p, "to the heights (and its pixel size taken when the stack "
                                 "has none)")
     p.set_defaults(func=run)
@@ -169,6 +170,13 @@ def run(args: argparse.Namespace) -> int:
         else:
             print(f"random error known for {100 * share:.1f}% of the reliable pixels only: their "
                   "focus curves are too narrow to split (a step coarse against the depth of field)")
+    reasons = surface.unreliable_reasons()
+    if reasons:
+        top = [f"{name.replace('_', ' ')} {100 * share:.1f}%"
+               for name, share in reasons.items() if share >= 0.005][:4]
+        where = " (where: reason.png)" if outputs is None or "reason.png" in outputs else ""
+        print(f"unreliable {100 * sum(reasons.values()):.1f}% of the image: "
+              f"{', '.join(top) or 'scattered'}{where}")
     hint = " (open view3d.png first)" if outputs is None or "view3d.png" in outputs else ""
     print(f"outputs in {args.out}/{hint}")
     return 0

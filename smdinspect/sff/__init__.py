@@ -19,8 +19,10 @@ from ._export import (
 )
 from ._focus import (OPERATORS, FocusOperator, band_powers, focus_measure, focus_measure_moments,
                      noise_sigma, prefilter_sigma)
+from ._reasonpng import render_reason_map
 from ._reconstruct import reconstruct, to_gray
-from ._surface import Surface, clipped_white, pixel_to_xy_mm, xy_mm_to_pixel
+from ._surface import (UNRELIABLE_REASONS, Surface, clipped_white, pixel_to_xy_mm,
+                       xy_mm_to_pixel)
 
 __all__ = [
     "OPERATORS",
@@ -31,6 +33,7 @@ __all__ = [
     "PeakFit",
     "PeakTracker",
     "Surface",
+    "UNRELIABLE_REASONS",
     "band_powers",
     "borrowed_mask",
     "centroid_correction",
@@ -48,6 +51,7 @@ __all__ = [
     "prefilter_sigma",
     "reconstruct",
     "render_height_png",
+    "render_reason_map",
     "render_view3d_png",
     "surface_point_cloud",
     "to_gray",

@@ -20,6 +20,7 @@ import numpy as np
 from .. import _atomic
 from .._malloc import release_free_memory
 from ..errors import InputError
+from ._reasonpng import render_reason_map
 from ._surface import Surface, _unit_rgb, pixel_to_xy_mm
 
 __all__ = [
@@ -40,8 +41,8 @@ MESH_MAX_SIDE = 384  # the exported height-field mesh is at most this many verti
 RECONSTRUCTION_OUTPUTS = (
     "height_mm.tiff", "confidence.tiff", "sigma_mm.tiff", "precision_mm.tiff", "aif.png",
     "height_filled_mm.tiff",
-    "sigma_filled_mm.tiff", "filled.png", "field.png", "height.png", "view3d.png", "cloud.ply",
-    "mesh.ply", "mesh.stl", "summary.json",
+    "sigma_filled_mm.tiff", "filled.png", "field.png", "height.png", "reason.png", "view3d.png",
+    "cloud.ply", "mesh.ply", "mesh.stl", "summary.json",
 )
 
 
@@ -297,7 +298,8 @@ def write_reconstruction(
     failed), ``aif.png``, the dense surface ``height_filled_mm.tiff`` (measured heights
     kept, the rest filled) with ``filled.png`` (255 = filled) and its uncertainty
     ``sigma_filled_mm.tiff``, ``field.png`` (255 = seen by every frame), ``height.png``,
-    ``view3d.png``, ``cloud.ply`` (measured points only), ``mesh.ply`` and ``mesh.stl``
+    ``reason.png`` (why heights are unreliable, where: :data:`~smdinspect.sff._surface.UNRELIABLE_REASONS`; only
+    when the surface knows its reasons), ``view3d.png``, ``cloud.ply`` (measured points only), ``mesh.ply`` and ``mesh.stl``
     (the dense surface over the field) and ``summary.json``.
 
     When nothing could be measured (no reliable pixel) there is no cloud and no mesh
@@ -320,7 +322,9 @@ def write_reconstruction(
         raise InputError(f"unknown output {', '.join(unknown)}; choose from "
                          f"{', '.join(RECONSTRUCTION_OUTPUTS)}")
     if not previews:
-        wanted -= {"height.png", "view3d.png"}
+        wanted -= {"height.png", "reason.png", "view3d.png"}
+    if surface.reason is None:
+        wanted.discard("reason.png")
     out = Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)
     measured = bool(surface.reliable.any())
@@ -369,6 +373,8 @@ def write_reconstruction(
     there: list[tuple[tuple[str, ...], Callable[[], Any]]] = [
         (("view3d.png",), import_vtk),
         (("height.png",), lambda: render_height_png(surface, out / "height.png")),
+        (("reason.png",), lambda: _atomic.write_image(
+            out / "reason.png", render_reason_map(surface.reason, surface.aif))),
         (("aif.png",), lambda: _atomic.write_image(out / "aif.png", _png_ready(surface.aif))),
         (("height_mm.tiff",), lambda: _atomic.write_tiff(
             out / "height_mm.tiff", np.asarray(surface.height_mm, f32))),

@@ -27,7 +27,7 @@ from ._depth import (PeakTracker, centroid_correction, fit_peaks, masked_gradien
                      select_curve_power)
 from ._focus import (FocusOperator, band_powers, focus_measure, focus_measure_moments,
                      noise_focus, noise_focus_spread, prefilter, prefilter_sigma)
-from ._surface import Surface, clipped_white
+from ._surface import UNRELIABLE_REASONS, Surface, clipped_white, reason_shares
 
 __all__ = ["reconstruct", "to_gray"]
 
@@ -36,6 +36,8 @@ log = logging.getLogger(__name__)
 Progress = Callable[[int, int], None]
 #: Every frame is scaled to this mean grey level before its focus measure.
 MEAN_GREY = 128.0
+#: reason name -> code of :data:`~smdinspect.sff._surface.UNRELIABLE_REASONS`
+REASON = {name: code for code, (name, _) in UNRELIABLE_REASONS.items()}
 #: A magnification growing by more than this towards higher z draws a warning (a
 #: moving-camera rig shrinks the image as z goes up; see Alignment.magnification_trend).
 MAGNIFICATION_TREND_WARN = 0.01
@@ -410,7 +412,7 @@ def _measure(run: "_Run", band: tuple[int, int, int, int], *,
                                           n, best_idx, box_px=config.window_px + 6,
                                           ratio=config.blur_order_ratio,
                                           floors=decided.setdefault("order_floors", {}))
-    fit, confidence, halo, beyond, precision = _level(
+    fit, confidence, halo, beyond, precision, failed = _level(
         tracker, z_mm, config, window_px=config.window_px, halo_radius_px=config.window_px + 2,
         noise_gain=noise_gain, own_px=own_px, decided=decided, grid_rows=(lo, run.shape[0]),
         order=order, order_out=order_out)
@@ -448,6 +450,7 @@ def _measure(run: "_Run", band: tuple[int, int, int, int], *,
     core = slice(core_lo - lo, core_hi - lo)
     stats = {f"coarse/{lv.factor}": float(np.count_nonzero(u[core]))
              for lv, u in zip(coarse, filled)}
+    misaligned = None
     if alignment is not None and not alignment.trusted:
         # a wrong registration puts a frame's focus on the wrong pixels: a height is only
         # as good as the alignment of the frames around its peak
@@ -455,6 +458,7 @@ def _measure(run: "_Run", band: tuple[int, int, int, int], *,
         if alignment.checks and not alignment.verified_spans:
             confidence[:] = 0.0
             beyond[:] = 0
+            misaligned = np.ones(height.shape, bool)
         else:
             pos = np.interp(height, z_mm, np.arange(n, dtype=np.float64))
             k = config.fit_half_width
@@ -464,6 +468,8 @@ def _measure(run: "_Run", band: tuple[int, int, int, int], *,
             stats["misaligned"] = float(np.count_nonzero(
                 (bad & (confidence >= config.min_confidence))[core]))
             confidence[bad] = 0.0
+            misaligned = bad
+    edges = lonely = None
     if config.edge_jump_steps > 0:
         jump = config.edge_jump_steps * stack.step_mm
         wide = config.window_px + 2 if config.edge_gap_check else 0
@@ -490,6 +496,22 @@ def _measure(run: "_Run", band: tuple[int, int, int, int], *,
                 height, reliable, distance_px=level.window_px, tol_mm=tol))
         confidence[lonely] = 0.0
         reliable &= ~lonely
+    # Why each pixel is unreliable: the first test it failed, in the order they are
+    # made (later assignments win): the field and the sweep's ends, the alignment, the
+    # confidence cues (failed), the halo checks, the depth edges, the support. (Where a
+    # coarse level filled it, the fine level's reasons stand. Over-exposure and the
+    # parallax's hidden pixels: _finish.)
+    reason = np.full(height.shape, REASON["peak_shape"], np.uint8)
+    for name, mask in (("unsupported", lonely), ("depth_edge", edges), ("halo", halo)):
+        if mask is not None:
+            reason[mask] = REASON[name]
+    np.copyto(reason, failed, where=failed > 0)
+    for name, mask in (("misaligned", misaligned), ("above_sweep", beyond > 0),
+                       ("below_sweep", beyond < 0), ("outside_field", ~field)):
+        if mask is not None:
+            reason[mask] = REASON[name]
+    reason[reliable] = 0
+    del failed
     for key in ("flagged", "judged"):  # counted over the band's margins too
         if f"_{key}" in order_out:
             stats[f"order/{key}"] = order_out[f"_{key}"]
@@ -499,7 +521,7 @@ def _measure(run: "_Run", band: tuple[int, int, int, int], *,
     stats["planes"] = {
         "height": height, "confidence": confidence, "reliable": reliable, "f_peak": fit.f_peak,
         "sigma_mm": fit.sigma_mm, "reliability_db": fit.reliability_db, "aif": aif,
-        "beyond": beyond, "precision": precision}
+        "beyond": beyond, "precision": precision, "reason": reason}
     return stats
 
 
@@ -519,9 +541,10 @@ def _finish(run: "_Run", planes: dict, stats: dict, bands: list, *, t0: float,
     correction, the field beyond the sweep, the summary; the :class:`Surface`."""
     stack, config, alignment, sigma = run.stack, run.config, run.alignment, run.sigma
     n, z_mm = len(stack), stack.z_mm
-    height, confidence, reliable, f_peak, sigma_mm, reliability_db, aif, beyond, precision = (
-        planes[key] for key in ("height", "confidence", "reliable", "f_peak", "sigma_mm",
-                                "reliability_db", "aif", "beyond", "precision"))
+    (height, confidence, reliable, f_peak, sigma_mm, reliability_db, aif, beyond, precision,
+     reason) = (planes[key] for key in ("height", "confidence", "reliable", "f_peak",
+                                        "sigma_mm", "reliability_db", "aif", "beyond",
+                                        "precision", "reason"))
     decided = run.decided
     meta: dict = {}
     if "curve" in decided:
@@ -563,18 +586,27 @@ def _finish(run: "_Run", planes: dict, stats: dict, bands: list, *, t0: float,
                 pixel_size *= info["pixel_scale"]
             hidden = sources < 0
             take = np.where(hidden, np.arange(sources.size).reshape(sources.shape), sources)
-            height, confidence, f_peak, sigma_mm, reliability_db, aif, beyond = (
+            height, confidence, f_peak, sigma_mm, reliability_db, aif, beyond, reason = (
                 a.reshape(-1, *a.shape[2:])[take] for a in (
-                    height, confidence, f_peak, sigma_mm, reliability_db, aif, beyond))
+                    height, confidence, f_peak, sigma_mm, reliability_db, aif, beyond,
+                    reason))
             if precision is not None:
                 precision = precision.reshape(-1)[take]
             reliable = reliable.reshape(-1)[take] & ~hidden
             confidence[hidden] = 0.0
+            reason[hidden] = REASON["outside_field"]  # not seen by every frame
     beyond = np.where(field & ~reliable, beyond, 0).astype(np.int8)
     meta["beyond_sweep"] = _beyond_sweep(beyond, field, z_mm)
-    clipped = _clipped(aif, field, reliable)
-    if clipped is not None:
-        meta["clipped_white"] = clipped
+    white = clipped_white(aif)
+    if white is not None:
+        meta["clipped_white"] = _clipped(white, field, reliable)
+        reason[white & (reason > REASON["over_exposed"])] = REASON["over_exposed"]
+    shares = reason_shares(reason)
+    meta["unreliable_reasons"] = {name: round(share, 4) for name, share in shares.items()}
+    if shares:
+        log.info("unreliable %.1f %% of the image: %s", 100 * sum(shares.values()),
+                 ", ".join(f"{name.replace('_', ' ')} {100 * share:.1f} %"
+                           for name, share in shares.items()))
     t_total = time.perf_counter() - t0
     h, w = run.shape
     meta.update({
@@ -606,6 +638,7 @@ def _finish(run: "_Run", planes: dict, stats: dict, bands: list, *, t0: float,
         beyond=beyond,
         precision_mm=None if precision is None else precision * np.float32(abs(stack.step_mm)),
         meta=meta,
+        reason=reason,
     )
 
 
@@ -665,13 +698,10 @@ def _beyond_sweep(beyond: np.ndarray, field: np.ndarray, z_mm: np.ndarray) -> di
     return out
 
 
-def _clipped(aif: np.ndarray, field: np.ndarray, reliable: np.ndarray) -> dict | None:
+def _clipped(mask: np.ndarray, field: np.ndarray, reliable: np.ndarray) -> dict:
     """Shares of the field, and of its unreliable part, clipped white in the all-in-focus
-    image (:func:`~smdinspect.sff._surface.clipped_white`), for ``summary.json``; a
-    warning when the share of the field reaches :data:`CLIPPED_WARN`."""
-    mask = clipped_white(aif)
-    if mask is None:
-        return None
+    image (``mask``: :func:`~smdinspect.sff._surface.clipped_white`), for
+    ``summary.json``; a warning when the share of the field reaches :data:`CLIPPED_WARN`."""
     in_field = mask & field
     n_field = max(int(np.count_nonzero(field)), 1)
     n_unrel = max(int(np.count_nonzero(field & ~reliable)), 1)
@@ -733,7 +763,9 @@ def _level(tracker: PeakTracker, z_mm: np.ndarray, config: FocusConfig, *, windo
            order: Callable[[np.ndarray], np.ndarray] | None = None,
            order_out: dict | None = None):
     """Fit one level's peaks and judge them: (fit, confidence, halo mask, beyond,
-    precision in steps or None; see :func:`precision_steps`).
+    precision in steps or None (see :func:`precision_steps`), failed: uint8, where an
+    interior peak fails the confidence cues the reason's code (weak texture: the noise
+    test, else peak shape; on an end frame weak texture only), 0 elsewhere).
 
     ``beyond`` (int8) is −1 / +1 where the curve is sharpest on the first / last frame
     and passes the noise and second-mode tests (clearly textured, falling away from the
@@ -836,10 +868,16 @@ def _level(tracker: PeakTracker, z_mm: np.ndarray, config: FocusConfig, *, windo
             order_out.update(ratio=config.blur_order_ratio, judged=bool(judged),
                              blur_px_per_frame=round(float(kappa), 3),
                              flagged_of_reliable=round(flagged, 5))
+    weak = cues["noise"] < 0.5
+    # the confidence cues' verdict, before the halo checks: why a peak failed them
+    # (a textured peak on an end frame fails as not interior: its reason is the sweep's
+    # end where it is clear (beyond, below), else a halo or its shape)
+    failed = np.select([confidence >= config.min_confidence, weak, first | last],
+                       [0, REASON["weak_texture"], 0], REASON["peak_shape"]).astype(np.uint8)
     confidence[halo] = 0.0
-    clear = (cues["noise"] >= 0.5) & (cues["second_mode"] >= 0.5) & ~halo
+    clear = ~weak & (cues["second_mode"] >= 0.5) & ~halo
     beyond = (np.where(first & clear, -1, 0) + np.where(last & clear, 1, 0)).astype(np.int8)
-    return fit, confidence, halo, beyond, precision
+    return fit, confidence, halo, beyond, precision, failed
 
 
 def _coarse_factors(config: FocusConfig, shape) -> list[int]:
@@ -898,10 +936,10 @@ class _CoarseLevel:
         one) would take the textured side's height, which is not a measurement of it.
         """
         # the noise test scales with the footprint; the halo radius is the footprint's
-        fit, conf, _, _, prec = _level(self.tracker, z_mm, config, window_px=self.window_px,
-                                       halo_radius_px=-(-(self.window_px + 2) // self.factor),
-                                       noise_gain=noise_gain, grid_factor=self.factor,
-                                       decided=decided)
+        fit, conf, _, _, prec, _ = _level(self.tracker, z_mm, config, window_px=self.window_px,
+                                          halo_radius_px=-(-(self.window_px + 2) // self.factor),
+                                          noise_gain=noise_gain, grid_factor=self.factor,
+                                          decided=decided)
         inside = cv2.resize(field.astype(np.float32), self.small[::-1],
                             interpolation=cv2.INTER_AREA) > 0.999
         ok = (conf >= config.min_confidence) & inside

@@ -9,7 +9,39 @@ from typing import Any
 
 import numpy as np
 
-__all__ = ["Surface", "clipped_white", "pixel_to_xy_mm", "xy_mm_to_pixel"]
+__all__ = ["UNRELIABLE_REASONS", "Surface", "clipped_white", "pixel_to_xy_mm",
+           "reason_shares", "xy_mm_to_pixel"]
+
+#: Why a pixel is unreliable: :attr:`Surface.reason` holds the code (0: reliable), the
+#: first that applies in this order; name and what it means (and what to do about it).
+UNRELIABLE_REASONS: dict[int, tuple[str, str]] = {
+    1: ("outside_field", "not seen by every frame (the aligned frames' common field)"),
+    2: ("below_sweep", "sharpest on the sweep's lowest frame: the surface lies at or "
+                       "below the swept range (extend the sweep)"),
+    3: ("above_sweep", "sharpest on the sweep's highest frame: the surface lies at or "
+                       "above the swept range (extend the sweep)"),
+    4: ("over_exposed", "clipped white in its sharpest frame: no texture (lower the "
+                        "exposure or the lighting)"),
+    5: ("misaligned", "its peak lies on frames whose alignment disagrees with a direct "
+                      "registration"),
+    6: ("halo", "its focus peak is a defocused neighbour's blurred edge (a halo), a "
+                "height borrowed from a neighbour in its window, or a frame that is a blur "
+                "of the next"),
+    7: ("depth_edge", "next to a height step: its window mixes the step's two depths"),
+    8: ("unsupported", "no window around it corroborates its height (an isolated peak)"),
+    9: ("weak_texture", "too little texture: its focus curve does not stand above the "
+                        "sensor noise's"),
+    10: ("peak_shape", "its focus peak is too wide, ambiguous, doubled or badly fitted"),
+}
+
+
+def reason_shares(reason: np.ndarray) -> dict[str, float]:
+    """Share of the image (0..1) unreliable for each reason of :data:`UNRELIABLE_REASONS`
+    in a plane of their codes: only those that occur, largest first."""
+    counts = np.bincount(reason.ravel(), minlength=len(UNRELIABLE_REASONS) + 1)
+    shares = {UNRELIABLE_REASONS[code][0]: float(counts[code]) / reason.size
+              for code in UNRELIABLE_REASONS if counts[code]}
+    return dict(sorted(shares.items(), key=lambda kv: -kv[1]))
 
 
 def clipped_white(aif: np.ndarray) -> np.ndarray | None:
@@ -79,6 +111,9 @@ class Surface:
         −1 / +1 where the focus curve is clearly textured and sharpest on the first /
         last frame: the surface lies at or beyond that end of the sweep (unreliable as a
         height, a bound for the dense surface); 0 elsewhere. None when unknown.
+    reason : (H, W) uint8, optional
+        Why each pixel is unreliable, a code of :data:`UNRELIABLE_REASONS` (0 where
+        reliable). None when unknown.
     precision_mm : (H, W) float32, optional
         1σ random error of each height from the frames' noise (the even/odd split of its
         focus curve, :func:`smdinspect.sff.precision_steps`); NaN where the curve is too
@@ -100,6 +135,7 @@ class Surface:
     beyond: np.ndarray | None = None
     precision_mm: np.ndarray | None = None
     meta: dict[str, Any] = _field(default_factory=dict)
+    reason: np.ndarray | None = None
 
     def __post_init__(self) -> None:
         if self.field is None:
@@ -125,6 +161,10 @@ class Surface:
         return fill_surface(self.height_mm, self.reliable, self.aif,
                             confidence=self.confidence, step_mm=step, beyond=self.beyond,
                             z_range_mm=(float(np.min(self.z_mm)), float(np.max(self.z_mm))))
+
+    def unreliable_reasons(self) -> dict[str, float] | None:
+        """:func:`reason_shares` of :attr:`reason`; None when the reasons are unknown."""
+        return None if self.reason is None else reason_shares(self.reason)
 
     @property
     def coverage(self) -> float:

@@ -33,7 +33,7 @@ from ..acquire.rigs import sim_rig
 REPO = Path(__file__).parents[2]
 DEMO = str(REPO / "references" / "demo_board.json")
 RECONSTRUCTION = {"height_mm.tiff", "confidence.tiff", "sigma_mm.tiff", "precision_mm.tiff",
-                  "aif.png", "height.png",
+                  "aif.png", "height.png", "reason.png",
                   "view3d.png", "cloud.ply", "mesh.ply", "mesh.stl", "summary.json",
                   "height_filled_mm.tiff", "sigma_filled_mm.tiff", "filled.png", "field.png"}
 

@@ -30,10 +30,11 @@ def test_outputs(cone_stack, tmp_path, capsys):
     root, scene = cone_stack
     out = tmp_path / "out"
     assert main(["-q", "reconstruct", str(root), "--out", str(out)]) == 0
-    assert "coverage" in capsys.readouterr().out
+    printed = capsys.readouterr().out
+    assert "coverage" in printed and "(where: reason.png)" in printed
     names = {p.name for p in out.iterdir()}
     assert names == {"height_mm.tiff", "confidence.tiff", "sigma_mm.tiff", "precision_mm.tiff",
-                     "aif.png", "height.png", "view3d.png",
+                     "aif.png", "height.png", "reason.png", "view3d.png",
                      "cloud.ply", "mesh.ply", "mesh.stl", "summary.json", "height_filled_mm.tiff",
                      "sigma_filled_mm.tiff", "filled.png", "field.png"}
     dense = tifffile.imread(out / "height_filled_mm.tiff")
