@@ -610,9 +610,10 @@ def _measure_chip(comp, joint, win: _Win, config: InspectConfig, level: float,
     m.reliable_fraction = n_rel / n if n else 0.0
     visible = pad & ~((np.abs(win.lx) <= hl) & (np.abs(win.ly) <= hw))
     m.bare_fraction = _bare_fraction(win, _morph(visible, 1, grow=False))
-    # End cap: the termination's top, away from the body edge.
+    # End cap: the termination's top, away from the body edge; solder over it stands
+    # under the plausibility ceiling like any solder (above it: spurious peaks).
     t = comp.termination_length_mm
-    cap = (u >= hl - t + mg) & (u <= hl - mg) & (np.abs(v_body) <= hw - mg) & win.rel_all
+    cap = (u >= hl - t + mg) & (u <= hl - mg) & (np.abs(v_body) <= hw - mg) & win.rel
     cap_top = body_top_mm(comp)
     if cap.sum() >= 5:
         # Against the body top's own plane where it is measured and raised (a part tilted
