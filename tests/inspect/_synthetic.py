@@ -153,3 +153,13 @@ def inspect_placed(surface, board, labels, config=None):
     reg = RegistrationResult(transform=T, fitness=float("nan"), rmse_mm=float("nan"),
                              converged=True, method="truth")
     return _inspect_located(surface, board, reg, config or InspectConfig())
+
+
+def placed_mask(surface, labels, polygon_mm) -> np.ndarray:
+    """Pixels of ``surface`` inside a board-coordinate polygon, at the scene's placement."""
+    from smdinspect.inspect._geometry import apply2d, polygon_mask, world_to_pixel
+
+    T = np.array(labels["placement"]["board_to_world"])
+    shape = surface.height_mm.shape
+    return polygon_mask(world_to_pixel(apply2d(T, polygon_mm), shape=shape,
+                                       pixel_size_mm=surface.pixel_size_mm), shape)

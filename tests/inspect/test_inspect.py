@@ -13,7 +13,7 @@ from smdinspect.inspect import InspectConfig, Verdict, load_board
 from smdinspect.inspect._inspect import inspect_surface
 
 from ._synthetic import (ALL_DEFECTS, DEMO, DENSE, STEP_MM, expected, height_errors,
-                         inspect_placed, part_crop, truth_surface)
+                         inspect_placed, part_crop, placed_mask, truth_surface)
 
 # On an ideal height map the 97th percentile of a concave side strip reads ~0.8 of the
 # wetting height (the default 0.5 is the calibration for shape from focus).
@@ -186,11 +186,7 @@ def test_a_few_spurious_peaks_over_an_unmeasured_cap_are_not_solder():
                                      params={"C1.2": {"over_mm": 0.2, "style": "cap"}}
                                      if defect else None)
         if spurious:
-            from smdinspect.inspect._geometry import apply2d, polygon_mask, world_to_pixel
-
-            T = np.array(labels["placement"]["board_to_world"])
-            m = polygon_mask(world_to_pixel(apply2d(T, cap), shape=s.height_mm.shape,
-                                            pixel_size_mm=s.pixel_size_mm), s.height_mm.shape)
+            m = placed_mask(s, labels, cap)
             rel, h = np.array(s.reliable), np.array(s.height_mm)
             rel[m] = False
             r, c = np.nonzero(m)
@@ -211,8 +207,6 @@ def test_a_level_band_within_the_window_reach_of_a_body_is_a_possible_bridge(win
     a bridge."""
     import dataclasses
 
-    from smdinspect.inspect._geometry import apply2d, polygon_mask, world_to_pixel
-
     board, off, shape = part_crop(DEMO, "R1")
     s, labels, b = truth_surface(board, "", seed=3, offset_mm=off, shape=shape,
                                  hole_fraction=0.0)
@@ -221,9 +215,7 @@ def test_a_level_band_within_the_window_reach_of_a_body_is_a_possible_bridge(win
     inner = min(float(np.min(np.abs(part.to_local(j.polygon_mm)[:, 0]))) for j in part.joints)
     band = part.to_board(np.array([[-inner, hw + 0.04], [inner, hw + 0.04],
                                    [inner, hw + 0.06], [-inner, hw + 0.06]]))
-    T = np.array(labels["placement"]["board_to_world"])
-    m = polygon_mask(world_to_pixel(apply2d(T, band), shape=s.height_mm.shape,
-                                    pixel_size_mm=s.pixel_size_mm), s.height_mm.shape)
+    m = placed_mask(s, labels, band)
     h = np.array(s.height_mm)
     h[m] = 0.25
     s = dataclasses.replace(s, height_mm=h, meta={"config": {"window_px": window_px}})
