@@ -195,11 +195,19 @@ class Alignment:
         ``z`` through the frames' scales, ``h0`` the median reliable height (the board,
         on a board: it stays where it is) and ``c`` the image centre (the principal
         point of a lens looking straight down); unreliable pixels stay. Where two land
-        on one pixel the higher wins (it hides the other from the lens); a pixel nothing
-        lands on was hidden behind a raised part's edge and is left unreliable, unless it
-        is a one-pixel gap between two landed pixels within a frame step of each other
-        (rounding where the shift grows by a pixel: it takes its neighbour). An
-        output pixel is ``scale(h0)`` times the focused plane's pixel (``pixel_scale``).
+        on one pixel the higher wins (it hides the other from the lens), a measured one
+        over an unreliable one. A one-pixel gap between two landed pixels within a frame
+        step of each other is rounding where the shift grows by a pixel: it takes its
+        neighbour. What is still empty takes what lands there when every pixel moves,
+        an unreliable one with a smooth fill of the measured heights around it
+        (:func:`_smooth_fill`): a measured pixel that moved off beside unreliable ones
+        leaves no hole (2.5 % of metal-bore's field with ``--step-mm 0.1`` came out
+        "hidden" that way); only a place hidden behind a raised part's edge, where
+        nothing lands either way, stays empty and unreliable. (Only for the empty
+        places: moving the unreliable pixels everywhere gave their guessed positions the
+        places the first move fills from measured neighbours, 0.7 % fewer reliable
+        pixels on an ordinary-lens board, and more joints unreliable.)
+        An output pixel is ``scale(h0)`` times the focused plane's pixel (``pixel_scale``).
 
         A magnification that grows with z is a rig that focuses with the lens (or z
         runs the wrong way): its parallax depends on the distance to the lens, which
@@ -225,30 +233,26 @@ class Alignment:
             return None, info
         sel = np.asarray(reliable, bool) & self.field & np.isfinite(height_mm)
         h0 = float(np.median(height_mm[sel])) if sel.any() else float(np.median(z))
-        h, w = self.shape
-        rows, cols = np.nonzero(sel)
-        # a pixel moves by its 5x5 neighbourhood's median height (unreliable ones count
-        # as h0): one noisy height does not scatter it away from its neighbours
-        local = cv2.medianBlur(np.where(sel, np.clip(height_mm, z.min(), z.max()), h0)
-                               .astype(np.float32), 5)
-        f = np.exp(g * (local[sel] - h0))
-        cx, cy = (w - 1) / 2.0, (h - 1) / 2.0
-        tx = np.rint(cx + (cols - cx) * f).astype(np.int64)
-        ty = np.rint(cy + (rows - cy) * f).astype(np.int64)
-        inside = (tx >= 0) & (tx < w) & (ty >= 0) & (ty < h)
-        sources = np.arange(h * w, dtype=np.int64).reshape(h, w)
-        sources[sel] = -1
-        key, src = ty[inside] * w + tx[inside], (rows * w + cols)[inside]
-        order = np.lexsort((height_mm[sel][inside], key))   # by target, then height
-        key, src = key[order], src[order]
-        last = np.append(key[1:] != key[:-1], True)          # the highest per target
-        sources.reshape(-1)[key[last]] = src[last]
-        _fill_rounding_gaps(sources, np.asarray(height_mm).reshape(-1),
-                            float(np.median(np.abs(np.diff(z)))))
-        shift = np.hypot(tx - cols, ty - rows)
+        known = np.where(sel, np.clip(height_mm, z.min(), z.max()), h0).astype(np.float32)
+        step = float(np.median(np.abs(np.diff(z))))
+        # the measured pixels move (unreliable ones counting as h0 in their medians),
+        # the unreliable ones stay where they are
+        local = cv2.medianBlur(known, 5)
+        sources, shift = _land(local, sel, g, h0, stay=~sel)
+        _fill_rounding_gaps(sources, local.ravel(), step)
+        # what that leaves empty (a measured pixel moved off, no other came) is filled
+        # from a move of every pixel, an unreliable one with a smooth fill of the
+        # measured heights around it: it travels with the surface it lies on
+        hole = sources < 0
+        if hole.any():
+            fill = _smooth_fill(known, sel, h0)
+            local = np.where(sel, cv2.medianBlur(np.where(sel, known, fill), 5), fill)
+            every, _ = _land(local, sel, g, h0, stay=None)
+            _fill_rounding_gaps(every, local.ravel(), step)
+            sources[hole] = every[hole]
         info.update(corrected=True, reference_height_mm=round(h0, 5),
                     pixel_scale=round(float(np.exp(g * h0 + a)), 6),
-                    max_shift_px=round(float(shift.max()) if shift.size else 0.0, 2),
+                    max_shift_px=round(shift, 2),
                     hidden_fraction=round(float(np.mean(sources < 0)), 6))
         return sources, info
 
@@ -263,6 +267,63 @@ class Alignment:
             return 0.0
         slope, mid = np.polyfit(np.arange(scales.size), scales, 1)
         return round(float(slope * (scales.size - 1) / max(np.mean(scales), 1e-9)), 4)
+
+
+#: Smoothing (σ, px) of the heights that move the unreliable pixels, and the density of
+#: reliable pixels at which they count as much as the reference height (sparse, isolated
+#: ones barely move their surroundings) (:meth:`Alignment.parallax_sources`).
+FILL_SMOOTH_PX = 10.0
+FILL_PRIOR_DENSITY = 0.02
+
+
+def _smooth_fill(values: np.ndarray, known: np.ndarray, default: float) -> np.ndarray:
+    """(H, W) float32: a Gaussian-weighted mean of ``values`` over the ``known`` pixels
+    around each pixel, drawn towards ``default`` where they are sparse."""
+    m = known.astype(np.float32)
+    num = cv2.GaussianBlur(np.where(known, values, 0).astype(np.float32), (0, 0),
+                           FILL_SMOOTH_PX)
+    den = cv2.GaussianBlur(m, (0, 0), FILL_SMOOTH_PX)
+    num += np.float32(FILL_PRIOR_DENSITY * default)
+    den += np.float32(FILL_PRIOR_DENSITY)
+    return num / den
+
+
+def _land(local: np.ndarray, measured: np.ndarray, g: float, h0: float, *,
+          stay: np.ndarray | None) -> tuple[np.ndarray, float]:
+    """Forward parallax move: every pixel (those of ``stay`` excepted: they keep their
+    own place) goes to ``c + (x − c)·exp(g·(local − h0))``; where several land on one
+    pixel the highest ``measured`` one wins, else the highest. Returns the (H, W) flat
+    source index per pixel (−1 where nothing landed) and the largest shift (px)."""
+    h, w = local.shape
+    index = np.int32 if h * w < 2**31 else np.int64
+    movers = np.flatnonzero(np.ones(h * w, bool) if stay is None else ~stay.ravel())
+    movers = movers.astype(index, copy=False)
+    rows, cols = np.divmod(movers, index(w))
+    f = np.exp(g * (local.ravel()[movers] - h0), dtype=np.float32)
+    cx, cy = (w - 1) / 2.0, (h - 1) / 2.0
+    tx = np.rint(cx + (cols - cx) * f).astype(index)
+    ty = np.rint(cy + (rows - cy) * f).astype(index)
+    del f
+    shift = float(np.hypot(tx - cols, ty - rows).max()) if movers.size else 0.0
+    inside = (tx >= 0) & (tx < w) & (ty >= 0) & (ty < h)
+    sources = np.full(h * w, -1, np.int64)
+    if stay is not None:
+        sources[stay.ravel()] = np.flatnonzero(stay.ravel())
+    key, src = ty[inside] * index(w) + tx[inside], movers[inside]
+    del tx, ty, inside
+    # per target the highest measured pixel wins, else the highest (a guessed height
+    # never hides a measured one): a priority of 2^21 height levels over the image's
+    # range, plus 2^21 for a measured pixel; the highest priority per target, scattered
+    lv = local.ravel()[src]
+    lo, span = float(lv.min()), max(float(np.ptp(lv)), 1e-9)
+    prio = ((lv - lo) * ((2**21 - 1) / span)).astype(np.int32)
+    del lv
+    prio += measured.ravel()[src].astype(np.int32) << 21
+    best = np.full(h * w, -1, np.int32)
+    np.maximum.at(best, key, prio)
+    win = prio == best[key]
+    sources[key[win]] = src[win]
+    return sources.reshape(h, w), shift
 
 
 def _fill_rounding_gaps(sources: np.ndarray, height: np.ndarray, step: float) -> None:
