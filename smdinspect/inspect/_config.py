@@ -78,6 +78,12 @@ class InspectConfig:
         With a colour cue (RGB image, fiducials of a coloured finish): a joint below its
         band is ``missing`` when at least this fraction of its visible pad looks like the
         bare finish, else ``insufficient``.
+    bare_dominant_fraction : float
+        When at least this fraction of the visible pad looks like the bare finish, the
+        joint is ``missing`` whatever heights were read on it: solder that reaches the
+        band wets the pad out from the termination or foot, so a pad that is mostly
+        bare has no such fillet, and the heights read there are the termination's or
+        the lead's edge spread by the focus window.
     fillet_model : FilletModel or str
         ``"meniscus"`` (default) or ``"percentile"``; see :mod:`._measure`.
     min_fillet_reach : float
@@ -180,6 +186,7 @@ class InspectConfig:
     height_percentile: float = 97.0
     missing_height_mm: float = 0.04
     bare_missing_fraction: float = 0.5
+    bare_dominant_fraction: float = 0.8
     fillet_model: FilletModel = FilletModel.MENISCUS
     min_fillet_reach: float = 0.4
     cap_excess_mm: float = 0.05
@@ -230,7 +237,7 @@ class InspectConfig:
         _check_number("cap_excess_mm", self.cap_excess_mm, 0.0, lo_open=True)
         _check_number("side_fillet_ratio", self.side_fillet_ratio, 0.0, 1.0, lo_open=True)
         for name in ("bridge_min_fraction", "component_present_fraction", "min_match_score",
-                     "bare_missing_fraction", "standing_fraction", "min_fillet_reach",
+                     "bare_missing_fraction", "bare_dominant_fraction", "standing_fraction", "min_fillet_reach",
                      "min_fitness", "shift_tol_fraction"):
             _check_number(name, getattr(self, name), 0.0, 1.0)
         _check_number("tombstone_tilt_deg", self.tombstone_tilt_deg, 0.0, 90.0, lo_open=True)

@@ -105,6 +105,7 @@ Gull-wing lead
 
 from __future__ import annotations
 
+import logging
 import math
 from dataclasses import dataclass, field
 
@@ -114,6 +115,8 @@ from ._config import InspectConfig
 from ._features import body_blob, presence_threshold_mm
 from ._geometry import apply2d, pixel_to_world, polygon_mask, world_to_pixel
 from ._reference import body_top_mm, lead_top_mm
+
+log = logging.getLogger(__name__)
 
 __all__ = ["ComponentMeasurement", "JointMeasurement", "MeasureContext", "measure_board"]
 
@@ -478,7 +481,27 @@ def measure_board(board, ctx: MeasureContext, config: InspectConfig):
         body = None if cm.body_mask is None else cm.body_mask[win.sl]
         _measure_gaps(comp, win, config, joints, others=near[win.sl], body=body,
                       body_top_mm=cm.body_height_mm)
+    _check_colour_cue(joints, config)
     return joints, comps
+
+
+def _check_colour_cue(joints: dict[str, JointMeasurement], config: InspectConfig) -> None:
+    """Turn the colour cue off (every ``bare_fraction`` NaN) when most pads look bare.
+
+    A bare-finish reference that makes most of a board's pads look bare describes their
+    solder (a tinted solder or lighting), not a bare finish; or no pad was soldered, which
+    the heights show by themselves. Either way the colour cannot tell one joint from
+    another there, and a verdict resting on it would call every joint."""
+    finite = [m for m in joints.values() if math.isfinite(m.bare_fraction)]
+    if len(finite) < 4:
+        return
+    bare = sum(m.bare_fraction >= config.bare_missing_fraction for m in finite)
+    if bare > len(finite) / 2:
+        log.warning("%d of %d pads look like the bare finish by colour: the colour cue is "
+                    "not used (a tinted solder, or no solder anywhere; the heights decide)",
+                    bare, len(finite))
+        for m in finite:
+            m.bare_fraction = NAN
 
 
 def _others(fps: dict[str, np.ndarray], ref: str, win: "_Win") -> np.ndarray:

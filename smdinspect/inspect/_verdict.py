@@ -42,7 +42,9 @@ Joint level
    never read as a heel fillet.
 7. ``missing`` by colour: at least ``bare_missing_fraction`` of the visible pad looks
    like the bare finish (the all-in-focus colour does not need focus texture) and no
-   reliable height reaches the joint's ``min_height_mm``.
+   reliable height reaches the joint's ``min_height_mm``; or at least
+   ``bare_dominant_fraction`` of it does, whatever the heights (a fillet that reaches the
+   band wets the pad; the heights on a mostly bare pad are an edge's spread).
 8. ``bridge``: a path across the gap to a neighbouring pad of the same component is
    covered higher than ``bridge_height_mm`` (``bridge_lead_height_mm`` between the feet
    of a gull-wing part, far from any body edge) along ``bridge_min_fraction`` of its
@@ -373,6 +375,12 @@ def _joint_rule(joint, comp, m: JointMeasurement, comp_result: ComponentResult,
     if bare and not (m.max_mm >= joint.min_height_mm):   # NaN (nothing measured) counts
         return Verdict.MISSING, (f"no solder: {m.bare_fraction:.0%} of the visible pad looks bare; "
                                  f"max height {_um(m.max_mm)}, {m.reliable_fraction:.0%} reliable")
+    if math.isfinite(m.bare_fraction) and m.bare_fraction >= config.bare_dominant_fraction:
+        return Verdict.MISSING, (f"no solder: {m.bare_fraction:.0%} of the visible pad looks bare "
+                                 f"(>= {config.bare_dominant_fraction:.0%}: no fillet wets it); "
+                                 f"the {_um(m.max_mm)} read there is the "
+                                 f"{'lead' if comp.kind == 'gullwing' else 'termination'}'s "
+                                 f"edge spread by the focus window")
     # A bridge is read on the gap's own paths (each must be covered), not on the solder
     # area: it is judged however little of the solder area is reliable.
     bridge = _bridge_limit(comp, config)
