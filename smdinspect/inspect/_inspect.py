@@ -164,8 +164,11 @@ def _inspect_located(surface, board, reg: RegistrationResult, cfg: InspectConfig
     chroma = chroma_map(surface.aif)
     # The bare finish's colour: the fiducials', else the pads' own (a pad that shows
     # bare gold or copper), so no fiducial is needed to tell a bare pad from solder.
-    bare_chroma = fiducial_chroma(board, reg.transform, chroma, p)
-    if not np.isfinite(bare_chroma):
+    # Grey fiducials say the finish is grey (HASL): then nothing on a pad that looks
+    # coloured is the finish (a part's body seen over it, a reflection), and the cue
+    # stays off.
+    bare_chroma, fiducials_seen = fiducial_chroma(board, reg.transform, chroma, p)
+    if not fiducials_seen:
         bare_chroma = pad_chroma_reference(board, reg.transform, chroma, p)
     field = getattr(surface, "field", None)
     field = None if field is None or np.asarray(field).shape != height.shape \

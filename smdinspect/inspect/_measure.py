@@ -292,10 +292,11 @@ def chroma_map(aif: np.ndarray) -> np.ndarray | None:
     return np.where(s > 0, (f[:, :, 0] - f[:, :, 2]) / np.maximum(s, 1e-6), 0.0).astype(np.float32)
 
 
-def fiducial_chroma(board, T, chroma: np.ndarray | None, p: float) -> float:
-    """Median chroma inside the fiducials (the bare pad finish); NaN when unusable."""
+def fiducial_chroma(board, T, chroma: np.ndarray | None, p: float) -> tuple[float, bool]:
+    """Median chroma inside the fiducials (the bare pad finish) and whether any fiducial
+    was seen; the chroma is NaN when none was seen or the finish is grey (HASL, tin)."""
     if chroma is None or not board.fiducials:
-        return NAN
+        return NAN, False
     vals = []
     shape = chroma.shape
     for f in board.fiducials:
@@ -306,9 +307,9 @@ def fiducial_chroma(board, T, chroma: np.ndarray | None, p: float) -> float:
         if m.sum() >= 5:
             vals.append(chroma[m])
     if not vals:
-        return NAN
+        return NAN, False
     c = float(np.median(np.concatenate(vals)))
-    return c if abs(c) >= 0.08 else NAN
+    return (c if abs(c) >= COLOURED_CHROMA else NAN), True
 
 
 #: A pixel is "coloured" (not neutral solder or tin grey) when its chroma magnitude is

@@ -7,6 +7,7 @@ tuning seeds (0–999); the benchmark's reported figures use 10000–10999.
 
 from __future__ import annotations
 
+import dataclasses
 import math
 
 import numpy as np
@@ -26,7 +27,7 @@ from smdinspect.synth._board_scene import (
     scene_kwargs,
 )
 
-from ._synthetic import DEMO, DENSE, expected, truth_surface
+from ._synthetic import DEMO, DENSE, expected, placed_mask, truth_surface
 
 IDEAL = InspectConfig(side_fillet_ratio=0.8)
 
@@ -183,6 +184,28 @@ def test_missing_solder_without_fiducials(finish):
     assert got["R1.2"].verdict in (Verdict.INSUFFICIENT, Verdict.MISSING)
     others = [j for j in result.joints if j.id not in ("C1.1", "R2.2", "U1.3", "R1.2")]
     assert not [j.id for j in others if j.verdict.is_defect]
+
+
+def test_grey_fiducials_keep_a_coloured_spot_on_a_hasl_pad_from_being_the_finish():
+    """On a HASL board the fiducials are grey: the finish is grey, so a coloured spot on a
+    pad (a body seen over it, a reflection) is no bare finish. Without fiducials the
+    pads' own colour is all there is, and the spot is taken for the finish (the
+    randomised boards' demo 19 R2.1: a good joint called missing, 54 % 'bare')."""
+    from smdinspect.synth._board_scene import _ENIG
+
+    def painted(fiducials):
+        surface, labels, board = truth_surface(DEMO, "", seed=9, finish="hasl",
+                                               fiducials=fiducials)
+        spot = placed_mask(surface, labels, board.joint("R2.1").polygon_mm)
+        aif = surface.aif.copy()
+        aif[spot] = np.round(_ENIG * 255).astype(np.uint8)
+        surface = dataclasses.replace(surface, aif=aif)
+        return {j.id: j for j in inspect_surface(surface, board, IDEAL).joints}
+
+    with_fid = painted(True)
+    assert all(math.isnan(j.bare_fraction) for j in with_fid.values())
+    assert not with_fid["R2.1"].verdict.is_defect
+    assert painted(False)["R2.1"].bare_fraction > 0.9   # the only reference there is
 
 
 # -- parts at the field edge -----------------------------------------------------------------
