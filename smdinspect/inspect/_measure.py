@@ -418,6 +418,10 @@ class _Win:
         c1 = int(min(math.ceil(px[:, 0].max() + g) + 1, W))
         r0 = int(max(math.floor(px[:, 1].min() - g), 0))
         r1 = int(min(math.ceil(px[:, 1].max() + g) + 1, H))
+        # a part wholly outside the image keeps a few pixels of window at the edge
+        # (none of them its own): its measurements are then empty, never an error
+        c0, r0 = min(c0, max(W - 3, 0)), min(r0, max(H - 3, 0))
+        c1, r1 = max(c1, min(c0 + 3, W)), max(r1, min(r0 + 3, H))
         self.sl = (slice(r0, max(r1, r0)), slice(c0, max(c1, c0)))
         self.origin = np.array([c0, r0], np.float64)
         rows, cols = np.mgrid[r0:max(r1, r0), c0:max(c1, c0)]

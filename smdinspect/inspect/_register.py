@@ -495,8 +495,12 @@ def register_board(
     # Fiducials are the board's own reference marks: two or more that agree with the
     # placement (with at least three features in all, so the fit has redundancy)
     # locate the board however many parts are defective.
+    # "Most bodies" of those the measured field shows: a field that cuts the board leaves
+    # the parts beyond its edge nothing to vouch with.
+    in_view = _components_in_view(board, T_final, height_mm.shape, p)
+    meta["components_in_view"] = in_view
     by_features = ("features" in method and len(feat.get("used", [])) >= 3
-                   and (len(used_bodies) >= 0.5 * len(board.components) or len(used_fids) >= 2)
+                   and (len(used_bodies) >= 0.5 * in_view or len(used_fids) >= 2)
                    and float(feat.get("rms_mm", 1.0)) <= CONSENSUS_MM and fit >= cfg.min_fitness)
     meta["located_by_features"] = bool(by_features)
     if math.isfinite(coverage) and not by_features:
@@ -611,6 +615,18 @@ def _measured_points(height, reliable, p, board, T, *, max_points, seed):
         idx = np.random.default_rng(seed).choice(len(rows), max_points, replace=False)
         rows, cols = rows[idx], cols[idx]
     return np.column_stack([cols * p, (H - 1 - rows) * p, height[rows, cols]])
+
+
+def _components_in_view(board, T: np.ndarray, shape: tuple[int, int], p: float) -> int:
+    """How many components' bodies lie wholly inside the image under placement ``T``."""
+    H, W = shape
+    n = 0
+    for comp in board.components:
+        cr = world_to_pixel(apply2d(T, np.asarray(comp.body_polygon_mm(), float)),
+                            shape=(H, W), pixel_size_mm=p)
+        n += bool(np.all((cr[:, 0] >= 0) & (cr[:, 0] <= W - 1)
+                         & (cr[:, 1] >= 0) & (cr[:, 1] <= H - 1)))
+    return n
 
 
 def _to_world3(ref_pts: np.ndarray, T: np.ndarray) -> np.ndarray:

@@ -229,6 +229,33 @@ def test_parts_cut_by_the_field_edge_are_unreliable_never_shifted():
             assert not j.verdict.is_defect, (j.id, j.reason)
 
 
+def test_a_cut_field_with_its_largest_part_missing_is_located_by_what_it_shows():
+    """The field cuts the board (its right column of parts outside or partly so), the IC -
+    most of the reference's raised area - is missing and one fiducial is in view: the two
+    bodies and the fiducial in view vouch for the placement ("most bodies" of those the
+    field shows, not of the board; test seed demo 10004 was 'not located' so, with its
+    pose found within 13 um). A part wholly outside the image is measured empty, never
+    an error."""
+    b = load_board(DEMO)
+    b = dataclasses.replace(b, fiducials=(b.fiducials[0],))
+    H, W = board_shape(b, pixel_size_mm=0.02)
+    cut = int(W * 0.6)
+    off = ((W - 1) * 0.02 / 2 - (cut - 1) * 0.02 / 2, 0.0)
+    surface, labels, board = truth_surface(b, "U1.1:component_missing", seed=3, offset_mm=off,
+                                           rotate_deg=0.0, shape=(H, cut))
+    result = inspect_surface(surface, board, IDEAL)
+    assert result.registration.meta["located_by_features"]
+    assert result.registration.meta["components_in_view"] == 3
+    field = {j["id"]: j["field"] for j in labels["joints"]}
+    for j in result.joints:
+        if j.id.startswith("U1."):
+            assert j.verdict is Verdict.COMPONENT_MISSING, (j.id, j.reason)
+        elif field[j.id] == "in":
+            assert not j.verdict.is_defect, (j.id, j.reason)
+        else:
+            assert j.verdict is Verdict.UNRELIABLE, (j.id, j.reason)
+
+
 # -- registration against a shifted IC ---------------------------------------------------------
 
 
