@@ -237,7 +237,8 @@ class InspectConfig:
         _check_number("cap_excess_mm", self.cap_excess_mm, 0.0, lo_open=True)
         _check_number("side_fillet_ratio", self.side_fillet_ratio, 0.0, 1.0, lo_open=True)
         for name in ("bridge_min_fraction", "component_present_fraction", "min_match_score",
-                     "bare_missing_fraction", "bare_dominant_fraction", "standing_fraction", "min_fillet_reach",
+                     "bare_missing_fraction", "bare_dominant_fraction", "standing_fraction",
+                     "min_fillet_reach",
                      "min_fitness", "shift_tol_fraction"):
             _check_number(name, getattr(self, name), 0.0, 1.0)
         _check_number("tombstone_tilt_deg", self.tombstone_tilt_deg, 0.0, 90.0, lo_open=True)

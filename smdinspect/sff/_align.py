@@ -308,9 +308,12 @@ def _land(local: np.ndarray, measured: np.ndarray, g: float, h0: float, *,
     inside = (tx >= 0) & (tx < w) & (ty >= 0) & (ty < h)
     sources = np.full(h * w, -1, np.int64)
     if stay is not None:
-        sources[stay.ravel()] = np.flatnonzero(stay.ravel())
+        kept = np.flatnonzero(stay)
+        sources[kept] = kept
     key, src = ty[inside] * index(w) + tx[inside], movers[inside]
     del tx, ty, inside
+    if src.size == 0:   # nothing moved lands inside the image
+        return sources.reshape(h, w), shift
     # per target the highest measured pixel wins, else the highest (a guessed height
     # never hides a measured one): a priority of 2^21 height levels over the image's
     # range, plus 2^21 for a measured pixel; the highest priority per target, scattered
