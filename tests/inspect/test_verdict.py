@@ -76,6 +76,23 @@ def test_meniscus_extrapolated_below_or_above_the_band_is_unreliable(c2):
     assert r.verdict is Verdict.EXCESS
 
 
+def test_a_meniscus_capped_at_the_termination_top_is_still_an_extrapolation(c2):
+    # Demo seed 45 (a sweep of randomised severities): an insufficient 0402 fillet (50 µm)
+    # whose meniscus, fitted at 35 % reach, overshot and was capped at the termination
+    # top (9 µm above the band's max by the body plane) read 'excess'. Capping bounds an
+    # extrapolation; it does not make it a measurement.
+    joint = c2[0]
+    r = _judge(c2, max_mm=joint.max_height_mm + 0.009, fillet_reach=0.35,
+               max_method="meniscus (capped at the termination top)",
+               observed_mm=joint.min_height_mm - 0.02)
+    assert r.verdict is Verdict.UNRELIABLE and "fillet top not measured" in r.reason
+    assert r.max_method == "meniscus (capped at the termination top, extrapolated, reach 35%)"
+    # reached, it is a measurement: the cap height is then the joint's max
+    r = _judge(c2, max_mm=joint.max_height_mm + 0.009, fillet_reach=0.6,
+               max_method="meniscus (capped at the termination top)",
+               observed_mm=joint.min_height_mm + 0.05)
+    assert r.verdict is Verdict.EXCESS
+
 def test_a_bare_pad_is_missing_even_when_too_little_of_it_is_reliable(c2):
     r = _judge(c2, reliable_fraction=0.2, max_mm=0.0, bare_fraction=0.9, observed_mm=0.0)
     assert r.verdict is Verdict.MISSING and "looks bare" in r.reason
