@@ -153,6 +153,7 @@ class JointMeasurement:
     fillet_near_mm: float = NAN     # ... how near the termination they come (5th pct)
     fillet_edge_mm: float = NAN     # ... where its solder area starts (+ a pixel)
     observed_mm: float = NAN        # the solder area's percentile (what the pixels show)
+    fit_seen_mm: float = NAN        # chip meniscus: the same over the pixels the fit kept
     bulge_mm: float = NAN           # chip, bulging fillet: the concave fit's height (overshoots)
     bare_fraction: float = NAN      # visible pad looking like bare finish (colour)
     clipped_fraction: float = NAN   # solder area clipped white in the all-in-focus image
@@ -615,6 +616,9 @@ def _meniscus(d: np.ndarray, length: float, z: np.ndarray, uz: np.ndarray,
         # highest of the kept pixels (95th percentile of g, robust to a stray pixel).
         info["reach"] = float(np.percentile(g[keep], 95))
         info["near"] = float(np.percentile(d[keep], 5))
+        # what the pixels the fit kept show (the raw percentile also holds those it
+        # rejected: a body's bled edge by the termination)
+        info["seen"] = float(np.percentile(z[keep], SEEN_PERCENTILE))
     gk = g[keep]
     uk = uz[keep]
     uf = _propagated_u(gk, uk)
@@ -669,6 +673,7 @@ def _measure_chip(comp, joint, win: _Win, config: InspectConfig, level: float,
             F, uF = _meniscus(u[end] - hl, length, win.h[end], win.u[end], info)
             m.fillet_reach = info.get("reach", NAN)
             m.fillet_near_mm, m.fillet_edge_mm = info.get("near", NAN), mg + p
+            m.fit_seen_mm = info.get("seen", NAN)
             if np.isfinite(F) and F > joint.max_height_mm and info.get("rel_rms", 0.0) > 0.1:
                 # Not a meniscus: a bulging (convex) fillet fits a concave model badly
                 # and the fit overshoots. Its observed percentile is a lower bound of its
@@ -685,6 +690,11 @@ def _measure_chip(comp, joint, win: _Win, config: InspectConfig, level: float,
                 if F > ceiling >= pct:
                     m.max_mm, m.max_method = ceiling, "meniscus (capped at the termination top)"
     return m
+
+
+#: Percentile of the meniscus fit's kept heights reported as what they show
+#: (``fit_seen_mm``; the solder area's own uses ``height_percentile``, 97 by default).
+SEEN_PERCENTILE = 97.0
 
 
 #: Heel fillet fit: fewest reliable foot pixels it is fitted to (else the percentile).

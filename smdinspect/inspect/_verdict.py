@@ -442,9 +442,15 @@ def _joint_rule(joint, comp, m: JointMeasurement, comp_result: ComponentResult,
                                      f"meniscus fitted to it does not rise above it "
                                      f"({_um(h)}, reach {m.fillet_reach:.0%}); both < "
                                      f"{_um(config.missing_height_mm)}")
-        if seen >= joint.min_height_mm and h <= joint.max_height_mm:
+        # A lower bound passes the joint only from the pixels the meniscus fit kept: the
+        # solder area's own percentile also holds those it rejected, such as the body's
+        # bled edge by the termination (test seed demo 10005: a 1206 fillet fitted to
+        # 48 µm passed on a 'seen' 1178 µm, the end cap's height).
+        bound = min(seen, m.fit_seen_mm) if math.isfinite(m.fit_seen_mm) else seen
+        also = f" (the whole solder area's percentile {_um(seen)})" if bound < seen - 0.001 else ""
+        if bound >= joint.min_height_mm and h <= joint.max_height_mm:
             return Verdict.OK, (f"max solder height {_um(h)}{pm} extrapolated (reach "
-                                f"{m.fillet_reach:.0%}); the solder seen reaches {_um(seen)} "
+                                f"{m.fillet_reach:.0%}); the solder seen reaches {_um(bound)} "
                                 f">= min {_um(joint.min_height_mm)}")
         if m.fillet_reach >= MIN_PASS_REACH * config.min_fillet_reach \
                 and joint.min_height_mm <= h <= joint.max_height_mm:
@@ -455,7 +461,7 @@ def _joint_rule(joint, comp, m: JointMeasurement, comp_result: ComponentResult,
         return Verdict.UNRELIABLE, (f"fillet top not measured (reliable pixels reach "
                                     f"{m.fillet_reach:.0%} of the fitted height, < "
                                     f"{config.min_fillet_reach:.0%}): extrapolated {_um(h)}{pm}, "
-                                    f"seen {_um(seen)}; not judged")
+                                    f"seen {_um(bound)}{also}; not judged")
     if math.isfinite(m.bulge_mm) and h <= joint.max_height_mm < m.bulge_mm:
         # Between the bounds: the percentile (what is seen) lies in the band, the concave
         # fit (which overshoots a convex profile) above it. The crest is not measured.

@@ -323,3 +323,15 @@ def test_a_colour_cue_that_makes_most_pads_bare_is_not_used():
     most = joints([0.95, 0.9, 0.85, 0.2, 0.7])
     _check_colour_cue(most, cfg)
     assert all(math.isnan(m.bare_fraction) for m in most.values())
+
+
+def test_an_extrapolated_meniscus_passes_only_on_what_its_own_pixels_show(c2):
+    # Test seed demo 10005: a 1206 fillet fitted to pixels reaching 48 µm (extrapolated
+    # 166 µm at 23 % reach) passed because the solder area's percentile, which also holds
+    # the end cap's bled edge the robust fit rejected, read 1178 µm.
+    joint = c2[0]
+    kw = dict(max_mm=joint.nominal_height_mm, max_method="meniscus", fillet_reach=0.15,
+              observed_mm=joint.min_height_mm + 0.3)
+    r = _judge(c2, fit_seen_mm=0.048, **kw)
+    assert r.verdict is Verdict.UNRELIABLE and "seen 48 µm" in r.reason
+    assert _judge(c2, fit_seen_mm=joint.min_height_mm + 0.01, **kw).verdict is Verdict.OK
