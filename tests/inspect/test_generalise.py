@@ -164,6 +164,21 @@ def test_tombstone_at_any_tilt_is_named_tombstone(tilt):
         assert got[jid].verdict is Verdict.TOMBSTONE, (tilt, jid, got[jid].reason)
 
 
+@pytest.mark.parametrize("tilt", [83.0, 88.0])
+def test_a_tombstone_leaning_towards_a_close_neighbour_is_its_own(tilt):
+    # Dense board: C1 (0402) stands 0.2 mm from R1's pad; stood on end it leans over the
+    # gap into R1's grown footprint. Its tall blob lies more on its own footprint than on
+    # R1's, so it is C1 standing (test seed dense 10007 had left it unseen; on true
+    # heights it read 'component_shifted').
+    surface, labels, board = truth_surface(DENSE, "C1.2:tombstone", seed=1,
+                                           params={"C1.2": {"tilt_deg": tilt}})
+    result = inspect_surface(surface, board, IDEAL)
+    got = {j.id: j for j in result.joints}
+    for jid in ("C1.1", "C1.2"):
+        assert got[jid].verdict is Verdict.TOMBSTONE, (jid, got[jid].reason)
+    assert got["R1.1"].verdict is Verdict.OK and got["R1.2"].verdict is Verdict.OK
+
+
 def test_excess_over_the_cap_does_not_tilt_the_body():
     got, _, _ = _verdicts("C2.2:excess,R1.1:excess", seed=8,
                           params={"C2.2": {"over_mm": 0.19, "style": "convex"},
