@@ -619,9 +619,7 @@ def _meniscus(d: np.ndarray, length: float, z: np.ndarray, uz: np.ndarray,
         # highest of the kept pixels (95th percentile of g, robust to a stray pixel).
         info["reach"] = float(np.percentile(g[keep], 95))
         info["near"] = float(np.percentile(d[keep], 5))
-        # what the pixels the fit kept show (the raw percentile also holds those it
-        # rejected: a body's bled edge by the termination)
-        info["seen"] = float(np.percentile(z[keep], SEEN_PERCENTILE))
+        info["keep"] = keep
     gk = g[keep]
     uk = uz[keep]
     uf = _propagated_u(gk, uk)
@@ -676,7 +674,11 @@ def _measure_chip(comp, joint, win: _Win, config: InspectConfig, level: float,
             F, uF = _meniscus(u[end] - hl, length, win.h[end], win.u[end], info)
             m.fillet_reach = info.get("reach", NAN)
             m.fillet_near_mm, m.fillet_edge_mm = info.get("near", NAN), mg + p
-            m.fit_seen_mm = info.get("seen", NAN)
+            if "keep" in info:
+                # what the pixels the fit kept show (the area's percentile also holds those
+                # it rejected: a body's bled edge by the termination)
+                m.fit_seen_mm = float(np.percentile(win.h[end][info["keep"]],
+                                                    config.height_percentile))
             if np.isfinite(F) and F > joint.max_height_mm and info.get("rel_rms", 0.0) > 0.1:
                 # Not a meniscus: a bulging (convex) fillet fits a concave model badly
                 # and the fit overshoots. Its observed percentile is a lower bound of its
@@ -693,11 +695,6 @@ def _measure_chip(comp, joint, win: _Win, config: InspectConfig, level: float,
                 if F > ceiling >= pct:
                     m.max_mm, m.max_method = ceiling, "meniscus (capped at the termination top)"
     return m
-
-
-#: Percentile of the meniscus fit's kept heights reported as what they show
-#: (``fit_seen_mm``; the solder area's own uses ``height_percentile``, 97 by default).
-SEEN_PERCENTILE = 97.0
 
 
 #: Heel fillet fit: fewest reliable foot pixels it is fitted to (else the percentile).
@@ -1098,9 +1095,8 @@ def _body_middle(win: _Win, lo: np.ndarray, hi: np.ndarray, size: np.ndarray,
 
 
 def _measure_body(comp, ctx: MeasureContext, win: _Win, level: float,
-                  config: InspectConfig, *, exclude: np.ndarray | None = None,
-                  own: np.ndarray | None = None,
-                  theirs: np.ndarray | None = None) -> ComponentMeasurement:
+                  config: InspectConfig, *, exclude: np.ndarray, own: np.ndarray,
+                  theirs: np.ndarray) -> ComponentMeasurement:
     """Presence, centroid offset, tilt and upright area of the component body.
 
     ``exclude``: the other parts' footprints, grown by the gap margin (image-sized);
@@ -1177,7 +1173,7 @@ def _measure_body(comp, ctx: MeasureContext, win: _Win, level: float,
         reach = hl + max(0.1, comp.body_height_mm + 0.1)
         near = (np.abs(win.lx) <= reach) & (np.abs(win.ly) <= hw + 0.1) & win.rel_all
         tall = win.rel_all & (win.h > top + max(0.2, 0.3 * comp.body_height_mm))
-        if exclude is not None and tall.any():
+        if tall.any():
             import cv2
 
             _, lab = cv2.connectedComponents(tall.view(np.uint8), connectivity=8)
@@ -1188,8 +1184,7 @@ def _measure_body(comp, ctx: MeasureContext, win: _Win, level: float,
                 # than on this one's; this part, stood up leaning towards a close
                 # neighbour, more on its own: test seed dense 10007, an 0402 at 83 deg
                 # 0.2 mm from an 0603's pad, had been left standing unseen)
-                if own is None or theirs is None or \
-                        (blob_k & theirs[win.sl]).sum() >= (blob_k & own[win.sl]).sum():
+                if (blob_k & theirs[win.sl]).sum() >= (blob_k & own[win.sl]).sum():
                     tall &= ~blob_k
         tall &= near
         standing = float(tall.sum() * p * p / (comp.body_length_mm * comp.body_width_mm))
