@@ -142,6 +142,7 @@ class JointMeasurement:
     u_area_mm2: float = NAN
     lead_mm: float = NAN            # gull-wing: the lead's own height (toe half of the foot)
     lead_n: int = 0                 # ... and the reliable pixels it is the median of
+    lead_spread_mm: float = NAN     # ... and their spread (1.4826 MAD)
     foot_reliable_fraction: float = NAN
     foot_mm: float = NAN            # gull-wing: percentile over the foot
     heel_fit_n: int = 0             # gull-wing: reliable foot pixels the heel meniscus is fitted to
@@ -782,6 +783,16 @@ def _seen_next_to_lead(side: np.ndarray, rel: np.ndarray, across: np.ndarray,
     return bool(inner.any() and (inner & rel).sum() >= 0.5 * inner.sum())
 
 
+def under_lead(comp, m: JointMeasurement) -> tuple[float, float, str]:
+    """(the lead's measured underside, the solder level next to it — just beyond its toe,
+    else beside it —, where that level was read): a raised lead with the solder below its
+    underside is lifted, with the solder up to it buried (rule 6)."""
+    underside = m.lead_mm - float((comp.lead or {}).get("thickness_mm", 0.0))
+    if np.isfinite(m.toe_mm):
+        return underside, m.toe_mm, "beyond its toe"
+    return underside, (m.side_mm if np.isfinite(m.side_mm) else 0.0), "beside it"
+
+
 def _measure_gullwing(comp, joint, win: _Win, config: InspectConfig, level: float,
                       u_level: float) -> JointMeasurement:
     p = win.ctx.p
@@ -818,8 +829,10 @@ def _measure_gullwing(comp, joint, win: _Win, config: InspectConfig, level: floa
         m.foot_mm, u_foot = _percentile_max(win.h[fr], win.u[fr], config.height_percentile)
         toe_half = fr & (u >= 0.5 * (heel + toe))
         if toe_half.sum() >= 3:
-            m.lead_mm = float(np.median(win.h[toe_half]))
+            h_toe = win.h[toe_half]
+            m.lead_mm = float(np.median(h_toe))
             m.lead_n = int(toe_half.sum())
+            m.lead_spread_mm = 1.4826 * float(np.median(np.abs(h_toe - m.lead_mm)))
     else:
         u_foot = NAN
     sr = side & win.rel
@@ -838,9 +851,10 @@ def _measure_gullwing(comp, joint, win: _Win, config: InspectConfig, level: floa
     side_f = m.side_mm / config.side_fillet_ratio if np.isfinite(m.side_mm) else NAN
     side_u = u_side / config.side_fillet_ratio if np.isfinite(u_side) else NAN
     # A foot that stands above its nominal top with no solder up to its underside
-    # beyond the toe is the lead itself raised, not solder on it: never a heel fillet.
-    raised_lead = (np.isfinite(m.lead_mm) and m.lead_mm > g_t + 0.02
-                   and np.isfinite(m.toe_mm) and m.toe_mm < m.lead_mm - float(lead["thickness_mm"]))
+    # (beyond the toe, else beside it) is the lead itself raised, not solder on it:
+    # never a heel fillet.
+    underside, below, _ = under_lead(comp, m)
+    raised_lead = np.isfinite(m.lead_mm) and m.lead_mm > g_t + 0.02 and below < underside
     # The solder on the foot: its top at the heel from the meniscus fitted along the foot
     # (hundreds of pixels), not the percentile (the highest few, next to the knee's
     # blurred edge); the percentile when too few foot pixels are reliable.

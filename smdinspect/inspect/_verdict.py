@@ -33,9 +33,10 @@ Joint level
 5. ``excess`` (chips): solder over the end cap stands higher than ``cap_excess_mm``
    above the body top (measured on the cap, so judged even when the fillet is not).
 6. ``lifted_lead`` (gull-wing; needs ``min_reliable_fraction`` of the lead's foot
-   reliable, or :data:`LEAD_MIN_PIXELS` reliable pixels in its toe half): the lead's
-   measured top stands more than ``lifted_lead_gap_mm`` above its
-   nominal top (solder thickness + lead thickness) and the solder just beyond its toe
+   reliable, or :data:`LEAD_MIN_PIXELS` reliable pixels in its toe half, or from
+   :data:`LEAD_FEW_PIXELS` a rise that clears the gap by :data:`LEAD_SPREAD_K` times
+   their spread): the lead's measured top stands more than ``lifted_lead_gap_mm``
+   above its nominal top (solder thickness + lead thickness) and the solder just beyond its toe
    (else beside it) does not reach the lead's underside (measured top − lead
    thickness). A raised top with solder up to the underside is a buried foot (its
    height is then the joint's max, see rule 12), never a lifted lead; a raised foot is
@@ -95,7 +96,7 @@ import math
 import numpy as np
 
 from ._config import InspectConfig, Verdict
-from ._measure import HEEL_FIT_MIN_PIXELS, ComponentMeasurement, JointMeasurement
+from ._measure import HEEL_FIT_MIN_PIXELS, ComponentMeasurement, JointMeasurement, under_lead
 from ._reference import body_top_mm, lead_top_mm
 from ._result import ComponentResult, JointResult
 
@@ -245,6 +246,27 @@ def _misplaced(comp, offset: np.ndarray) -> str:
 #: their feet reliable, under the 40 % the coverage rule asks.
 LEAD_MIN_PIXELS = 20
 
+#: Fewer toe-half pixels (down to this many) read a lifted lead when the rise clears
+#: ``lifted_lead_gap_mm`` by :data:`LEAD_SPREAD_K` times their own spread (1.4826 MAD):
+#: a lead raised well clear of its pad shows only its toe in focus. Tuning dense seed 25:
+#: a lead lifted 0.28 mm read +254 µm from 17 pixels spread 10.5 µm and passed; good
+#: leads read under 20 pixels stand 45–63 µm *below* their nominal top.
+LEAD_FEW_PIXELS = 5
+LEAD_SPREAD_K = 3.0
+
+
+def _lead_read(comp, m: JointMeasurement, config: InspectConfig) -> bool:
+    """Whether the gull-wing lead's height is a reading rule 6 judges: enough of the
+    foot reliable, :data:`LEAD_MIN_PIXELS` toe-half pixels, or a rise above the nominal
+    top that clears the lifted-lead gap beyond its own pixels' spread."""
+    if not math.isfinite(m.lead_mm):
+        return False
+    if m.foot_reliable_fraction >= config.min_reliable_fraction or m.lead_n >= LEAD_MIN_PIXELS:
+        return True
+    rise = m.lead_mm - lead_top_mm(comp)
+    return (m.lead_n >= LEAD_FEW_PIXELS
+            and rise - LEAD_SPREAD_K * m.lead_spread_mm > config.lifted_lead_gap_mm)
+
 
 def judge_joint(joint, comp, m: JointMeasurement, comp_result: ComponentResult,
                 config: InspectConfig, *, component_in_field: float = 1.0) -> JointResult:
@@ -318,7 +340,7 @@ def _judged_on_heel_fit(joint, comp, m: JointMeasurement, config: InspectConfig)
             and m.heel_fit_n >= HEEL_FIT_MIN_PIXELS and math.isfinite(m.side_mm)
             and m.reliable_fraction >= 0.5 * config.min_reliable_fraction):
         return False
-    underside, below, _ = _under_lead(comp, m)
+    underside, below, _ = under_lead(comp, m)
     if m.lead_mm - lead_top_mm(comp) > config.lifted_lead_gap_mm and below < underside:
         return False
     side = m.side_mm / config.side_fillet_ratio
@@ -327,16 +349,6 @@ def _judged_on_heel_fit(joint, comp, m: JointMeasurement, config: InspectConfig)
     # every path to the neighbouring feet was read: a gap too sparsely measured to read
     # (a specular web is mostly unreliable pixels) leaves a bridge unchecked
     return m.gap_sparse_n == 0
-
-
-def _under_lead(comp, m: JointMeasurement) -> tuple[float, float, str]:
-    """(the lead's measured underside, the solder level next to it — just beyond its toe,
-    else beside it —, where that level was read): a raised lead with the solder below its
-    underside is lifted, with the solder up to it buried (rule 6)."""
-    underside = m.lead_mm - float((comp.lead or {}).get("thickness_mm", 0.0))
-    if math.isfinite(m.toe_mm):
-        return underside, m.toe_mm, "beyond its toe"
-    return underside, (m.side_mm if math.isfinite(m.side_mm) else 0.0), "beside it"
 
 
 def _possible_bridge(m: JointMeasurement, bridge: float, config: InspectConfig) -> str:
@@ -367,11 +379,9 @@ def _joint_rule(joint, comp, m: JointMeasurement, comp_result: ComponentResult,
                 config: InspectConfig) -> tuple[Verdict, str]:
     if comp_result.verdict.is_defect:
         return comp_result.verdict, f"{comp.ref}: {comp_result.reason}"
-    if comp.kind == "gullwing" and math.isfinite(m.lead_mm) \
-            and (m.foot_reliable_fraction >= config.min_reliable_fraction
-                 or m.lead_n >= LEAD_MIN_PIXELS):
+    if comp.kind == "gullwing" and _lead_read(comp, m, config):
         nominal = lead_top_mm(comp)
-        underside, below, where = _under_lead(comp, m)
+        underside, below, where = under_lead(comp, m)
         if m.lead_mm - nominal > config.lifted_lead_gap_mm and below < underside:
             return Verdict.LIFTED_LEAD, (f"lead top at {_um(m.lead_mm)}, "
                                          f"{_um(m.lead_mm - nominal)} above its nominal "

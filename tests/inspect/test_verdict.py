@@ -216,25 +216,32 @@ def test_a_bulging_fillet_whose_crest_is_unmeasured_never_passes(c2):
 
 def test_a_lifted_lead_is_judged_on_enough_pixels_whatever_the_foot_coverage():
     """A lead read 0.2 mm above its nominal top from 40 reliable toe-half pixels is a
-    lifted lead even when they are only 30 % of the foot; from 5 pixels at 30 % it is
-    not judged as one (the coverage rule: 40 %)."""
+    lifted lead even when they are only 30 % of the foot. From fewer pixels the rise must
+    clear the gap by three times their own spread: 0.2 mm from 8 pixels spread 10 µm is
+    lifted, spread 50 µm or unknown it is not judged as one (the coverage rule: 40 %),
+    nor is 0.1 mm spread 20 µm, nor anything from 4 pixels."""
     from smdinspect.inspect._reference import lead_top_mm
-    from smdinspect.inspect._verdict import LEAD_MIN_PIXELS
+    from smdinspect.inspect._verdict import LEAD_FEW_PIXELS, LEAD_MIN_PIXELS
 
     board = load_board(DEMO)
     u1, j = board.component("U1"), board.joint("U1.3")
     body = ComponentResult(ref="U1", kind="gullwing", package=u1.package, verdict=Verdict.OK,
                            reason="", present_fraction=1.0, body_height_mm=1.5,
                            offset_mm=(0.0, 0.0), tilt_deg=0.0, reliable_fraction=0.9)
-    top = lead_top_mm(u1) + 0.2
 
-    def judge(n):
+    def judge(n, spread=NAN, rise=0.2):
+        top = lead_top_mm(u1) + rise
         m = JointMeasurement(j.id, (0.0, 0.0), 200, 0.5, max_mm=top, max_method="foot",
-                             lead_mm=top, lead_n=n, foot_reliable_fraction=0.3, toe_mm=0.01)
+                             lead_mm=top, lead_n=n, lead_spread_mm=spread,
+                             foot_reliable_fraction=0.3, toe_mm=0.01)
         return judge_joint(j, u1, m, body, InspectConfig()).verdict
 
     assert judge(2 * LEAD_MIN_PIXELS) is Verdict.LIFTED_LEAD
-    assert judge(5) is not Verdict.LIFTED_LEAD
+    assert judge(8, spread=0.010) is Verdict.LIFTED_LEAD
+    assert judge(8) is not Verdict.LIFTED_LEAD
+    assert judge(8, spread=0.050) is not Verdict.LIFTED_LEAD
+    assert judge(8, spread=0.020, rise=0.1) is not Verdict.LIFTED_LEAD
+    assert judge(LEAD_FEW_PIXELS - 1, spread=0.0) is not Verdict.LIFTED_LEAD
 
 
 def test_a_gullwing_heel_is_judged_on_its_heel_fit_whatever_the_solder_area_coverage():
