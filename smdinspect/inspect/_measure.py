@@ -147,6 +147,7 @@ class JointMeasurement:
     foot_mm: float = NAN            # gull-wing: percentile over the foot
     heel_fit_n: int = 0             # gull-wing: reliable foot pixels the heel meniscus is fitted to
     side_mm: float = NAN            # gull-wing: percentile over the side region
+    side_level_mm: float = NAN      # ... and its median (the solder level beside the foot)
     cap_mm: float = NAN             # chip: end-cap top above its nominal height
     toe_mm: float = NAN             # gull-wing: solder just beyond the toe (median)
     in_field_fraction: float = 1.0  # share of the pad inside the measured field
@@ -790,7 +791,7 @@ def under_lead(comp, m: JointMeasurement) -> tuple[float, float, str]:
     underside = m.lead_mm - float((comp.lead or {}).get("thickness_mm", 0.0))
     if np.isfinite(m.toe_mm):
         return underside, m.toe_mm, "beyond its toe"
-    return underside, (m.side_mm if np.isfinite(m.side_mm) else 0.0), "beside it"
+    return underside, (m.side_level_mm if np.isfinite(m.side_level_mm) else 0.0), "beside it"
 
 
 def _measure_gullwing(comp, joint, win: _Win, config: InspectConfig, level: float,
@@ -839,6 +840,7 @@ def _measure_gullwing(comp, joint, win: _Win, config: InspectConfig, level: floa
     u_side = NAN
     if sr.sum() >= 3:
         m.side_mm, u_side = _percentile_max(win.h[sr], win.u[sr], config.height_percentile)
+        m.side_level_mm = float(np.median(win.h[sr]))
     if n_rel < 3:
         return m
     # Solder: the side region, plus what stands above the nominal lead top on the foot.

@@ -264,9 +264,10 @@ def test_a_gullwing_heel_is_judged_on_its_heel_fit_whatever_the_solder_area_cove
     nominal = lead_top_mm(u1)
 
     def judge(*, max_mm=inside, fraction=0.3, heel_n=4 * HEEL_FIT_MIN_PIXELS, side_mm=0.14,
-              lead_mm=nominal, sparse_n=0):
+              lead_mm=nominal, sparse_n=0, side_level_mm=NAN):
         m = JointMeasurement(j.id, (0.0, 0.0), 400, fraction, max_mm=max_mm, u_max_mm=0.005,
                              max_method="foot", heel_fit_n=heel_n, side_mm=side_mm,
+                             side_level_mm=side_level_mm,
                              foot_reliable_fraction=fraction, lead_mm=lead_mm, lead_n=5,
                              gap_sparse_mm=0.0, gap_sparse_n=sparse_n)
         return judge_joint(j, u1, m, body, InspectConfig())
@@ -283,10 +284,14 @@ def test_a_gullwing_heel_is_judged_on_its_heel_fit_whatever_the_solder_area_cove
     assert judge(side_mm=float("nan")).verdict is Verdict.UNRELIABLE   # dry foot not testable
     assert judge(fraction=0.15).verdict is Verdict.UNRELIABLE          # < half of 40 %
     # a raised lead on too few toe pixels for the lifted-lead rule: not a heel reading;
-    # a buried one (the solder beside it up to its underside) is excess
+    # a buried one (the solder level beside it up to its underside) is excess; the side
+    # strip's percentile alone (the raised lead's blurred edge) does not bury it
     assert judge(lead_mm=nominal + 0.2, max_mm=nominal + 0.22).verdict is Verdict.UNRELIABLE
     assert judge(lead_mm=j.max_height_mm + 0.05, max_mm=j.max_height_mm + 0.06,
-                 side_mm=j.max_height_mm).verdict is Verdict.EXCESS
+                 side_mm=j.max_height_mm,
+                 side_level_mm=j.max_height_mm).verdict is Verdict.EXCESS
+    assert judge(lead_mm=j.max_height_mm + 0.05, max_mm=j.max_height_mm + 0.06,
+                 side_mm=j.max_height_mm, side_level_mm=0.01).verdict is Verdict.UNRELIABLE
     assert judge(fraction=0.5, heel_n=0).verdict is Verdict.OK          # the coverage rule as before
 
 
