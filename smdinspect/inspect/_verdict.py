@@ -36,9 +36,9 @@ Joint level
    reliable, or :data:`LEAD_MIN_PIXELS` reliable pixels in its toe half, or from
    :data:`LEAD_FEW_PIXELS` a rise that clears the gap by :data:`LEAD_SPREAD_K` times
    their spread): the lead's measured top stands more than ``lifted_lead_gap_mm``
-   above its nominal top (solder thickness + lead thickness) and the solder just beyond its toe
-   (else beside it) does not reach the lead's underside (measured top − lead
-   thickness). A raised top with solder up to the underside is a buried foot (its
+   above its nominal top (solder thickness + lead thickness) and the solder level just
+   beyond its toe (else the median beside it, :func:`under_lead`) does not reach the
+   lead's underside (measured top − lead thickness). A raised top with solder up to the underside is a buried foot (its
    height is then the joint's max, see rule 12), never a lifted lead; a raised foot is
    never read as a heel fillet.
 7. ``missing`` by colour: at least ``bare_missing_fraction`` of the visible pad looks
