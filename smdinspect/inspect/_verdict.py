@@ -60,7 +60,9 @@ Joint level
    is judged on that fit from half the fraction on (:func:`_judged_on_heel_fit`).
 10. ``missing`` without a colour cue: the max height is below ``missing_height_mm``.
 11. ``insufficient``: below the joint's ``min_height_mm``.
-12. ``excess``: above the joint's ``max_height_mm``.
+12. ``excess``: above the joint's ``max_height_mm``; a chip meniscus capped at the end
+    cap's measured top above it is ``unreliable`` instead (the fit overshot; the cap's
+    own reading, not solder, stands above the band: solder over the cap is rule 5's).
     Rules 11–13 need a measured max: when a chip's meniscus fit reaches less than
     ``min_fillet_reach`` of its height, the fillet's top was not measured and the max is
     an extrapolation. Such a joint is ``excess`` when the solder area's own percentile
@@ -479,6 +481,17 @@ def _joint_rule(joint, comp, m: JointMeasurement, comp_result: ComponentResult,
                                     f"solder seen reaches {_um(h)}{pm}, within the max "
                                     f"{_um(joint.max_height_mm)}, the concave meniscus fitted "
                                     f"to it {_um(m.bulge_mm)}; not judged")
+    if h > joint.max_height_mm and m.max_method.startswith("meniscus (capped"):
+        # The fit rose past the end cap and was capped at the cap's measured top, which
+        # stands above the band's max (G + H, the cap's nominal top) by the cap's own
+        # reading, not by solder (solder over the cap is rule 5's): the fillet's top is
+        # not measured — an overshoot also follows the end cap's edge bled into the
+        # fillet's pixels (tuning demo 28 R3.1, a true 316 µm capped at 486 µm).
+        return Verdict.UNRELIABLE, (f"meniscus fit overshoots the end cap: capped at the "
+                                    f"cap's measured top {_um(h)}{pm}, above the max "
+                                    f"{_um(joint.max_height_mm)} (the cap's nominal top) with "
+                                    f"no solder over the cap beyond "
+                                    f"{_um(config.cap_excess_mm)}; not judged")
     if h < joint.min_height_mm and not math.isfinite(m.bare_fraction) \
             and h < config.missing_height_mm:
         return Verdict.MISSING, f"no solder: max height {_um(h)}{pm}{how} < {_um(config.missing_height_mm)}"

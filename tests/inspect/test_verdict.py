@@ -87,11 +87,27 @@ def test_a_meniscus_capped_at_the_termination_top_is_still_an_extrapolation(c2):
                observed_mm=joint.min_height_mm - 0.02)
     assert r.verdict is Verdict.UNRELIABLE and "fillet top not measured" in r.reason
     assert r.max_method == "meniscus (capped at the termination top, extrapolated, reach 35%)"
-    # reached, it is a measurement: the cap height is then the joint's max
+    # Reached, the fit still overshot the end cap: a cap read 9 µm above its nominal top
+    # (the band's max) is not excess solder (tuning demo 28 R3.1: a good 0603, 316 µm,
+    # capped at 486 > 480 µm, read excess); solder over the cap is rule 5's.
     r = _judge(c2, max_mm=joint.max_height_mm + 0.009, fillet_reach=0.6,
                max_method="meniscus (capped at the termination top)",
+               observed_mm=joint.min_height_mm + 0.05, cap_mm=0.009)
+    assert r.verdict is Verdict.UNRELIABLE and "overshoots the end cap" in r.reason
+    r = _judge(c2, max_mm=joint.max_height_mm + 0.08, fillet_reach=0.6,
+               max_method="meniscus (capped at the termination top)",
+               observed_mm=joint.min_height_mm + 0.05, cap_mm=0.08)
+    assert r.verdict is Verdict.EXCESS and "over the end cap" in r.reason
+    # capped within the band it is the joint's max
+    r = _judge(c2, max_mm=joint.max_height_mm - 0.01, fillet_reach=0.6,
+               max_method="meniscus (capped at the termination top)",
+               observed_mm=joint.min_height_mm + 0.05)
+    assert r.verdict is Verdict.OK
+    # an uncapped meniscus above the band is excess
+    r = _judge(c2, max_mm=joint.max_height_mm + 0.03, fillet_reach=0.6, max_method="meniscus",
                observed_mm=joint.min_height_mm + 0.05)
     assert r.verdict is Verdict.EXCESS
+
 
 def test_a_bare_pad_is_missing_even_when_too_little_of_it_is_reliable(c2):
     r = _judge(c2, reliable_fraction=0.2, max_mm=0.0, bare_fraction=0.9, observed_mm=0.0)
