@@ -295,6 +295,27 @@ def test_side_overhang_within_the_ipc_limit_is_not_a_shift():
     assert got["R2.1"].verdict is Verdict.COMPONENT_SHIFTED
 
 
+def test_a_part_shifted_off_its_footprint_is_judged_where_it_stands():
+    """A part moved off its footprint leaves the nominal one half board and pad, often
+    weakly textured or specular: how much of the body is measured is asked where the body
+    stands (tuning demo 42: an 0805 1.01 mm off, read 1.03 mm off from its edges, had
+    26 % of its nominal footprint reliable, was left unchecked and its joint passed)."""
+    from smdinspect.inspect._reference import body_top_mm
+
+    surface, labels, board = truth_surface(DEMO, "R2.1:component_shifted", seed=13,
+                                           params={"R2.1": {"overhang_frac": 0.75}})
+    comp = board.component("R2")
+    foot = placed_mask(surface, labels, comp.body_polygon_mm())
+    bare = foot & (surface.height_mm < 0.5 * body_top_mm(comp))
+    assert bare.sum() > 0.6 * foot.sum()          # the body has left most of its footprint
+    surface.reliable[bare] = False
+    result = inspect_surface(surface, board, IDEAL)
+    r2 = next(c for c in result.components if c.ref == "R2")
+    assert r2.verdict is Verdict.COMPONENT_SHIFTED, r2.reason
+    assert r2.reliable_fraction > 0.9
+    assert not any(j.verdict is Verdict.OK for j in result.joints if j.id.startswith("R2."))
+
+
 # -- every class on randomised boards ----------------------------------------------------------
 
 
