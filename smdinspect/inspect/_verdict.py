@@ -186,7 +186,7 @@ def judge_component(comp, m: ComponentMeasurement, config: InspectConfig) -> Com
         reason = (f"only {m.present_fraction:.0%} of the body footprint stands at body height "
                   f"(< {config.component_present_fraction:.0%})")
     elif all(map(math.isfinite, m.offset_mm)):
-        why = _misplaced(comp, np.asarray(m.offset_mm, np.float64))
+        why = _misplaced(comp, np.asarray(m.offset_mm, np.float64), m.offset_slack_mm)
         if why:
             verdict = Verdict.COMPONENT_SHIFTED
             reason = why
@@ -200,11 +200,23 @@ def judge_component(comp, m: ComponentMeasurement, config: InspectConfig) -> Com
 MAX_SIDE_OVERHANG = 0.5
 
 
-def _misplaced(comp, offset: np.ndarray) -> str:
-    """Why the part's displacement ``offset`` (BOARD frame, mm) is a defect ("" if not)."""
+def _misplaced(comp, offset: np.ndarray, slack=(0.0, 0.0)) -> str:
+    """Why the part's displacement ``offset`` (BOARD frame, mm) is a defect ("" if not).
+
+    ``slack``: how far the body's middle may lie from it along the part's own x and y;
+    a displacement counts only by what it shows beyond that."""
     worst = ""
     worst_v = 0.0
     centred_body = comp.body_polygon_mm() - [comp.x_mm, comp.y_mm]
+    a = math.radians(comp.rotation_deg)
+    ex, ey = np.array([math.cos(a), math.sin(a)]), np.array([-math.sin(a), math.cos(a)])
+
+    def shown(d: np.ndarray) -> float:
+        """The displacement along ``d`` less the slack along it (towards zero)."""
+        x = float(offset @ d)
+        s = abs(float(d @ ex)) * slack[0] + abs(float(d @ ey)) * slack[1]
+        return math.copysign(max(abs(x) - s, 0.0), x)
+
     for j in comp.joints:
         out = np.asarray(j.outward, np.float64)
         out = out / max(float(np.hypot(*out)), 1e-12)
@@ -215,7 +227,7 @@ def _misplaced(comp, offset: np.ndarray) -> str:
             term_w = float(comp.lead["width_mm"])
         else:
             term_w = float(np.ptp(centred_body @ acr))
-        side = abs(float(offset @ acr)) - max(pad_w - term_w, 0.0) / 2
+        side = abs(shown(acr)) - max(pad_w - term_w, 0.0) / 2
         frac = side / max(term_w, 1e-9)
         if frac > MAX_SIDE_OVERHANG and frac > worst_v:
             worst_v = frac
@@ -223,7 +235,7 @@ def _misplaced(comp, offset: np.ndarray) -> str:
                      f"hangs {frac:.0%} of its width over the pad's side (> "
                      f"{MAX_SIDE_OVERHANG:.0%}); body off by {float(offset @ acr):+.3f} mm "
                      f"across the pad")
-        along = float(offset @ out)
+        along = shown(out)
         if comp.kind == "gullwing" and comp.lead:
             heel = float(comp.lead["span_mm"]) / 2 - float(comp.lead["foot_length_mm"])
             room_in = heel - float((pad @ out).min())          # heel to the pad's inner end

@@ -244,11 +244,16 @@ def test_a_body_seen_at_one_end_only_is_placed_from_that_end():
     win = SimpleNamespace(lx=x, ly=y, h=h, rel_all=rel,
                           ctx=SimpleNamespace(mixing_mm=0.08))
     lo, hi = np.array([0.1, -0.24]), np.array([0.5, 0.24])
-    mid = _body_middle(win, lo, hi, np.array([1.0, 0.5]), 0.2, p)
-    assert abs(mid[0]) < 1e-9 and abs(mid[1]) < 1e-9
+    mid, slack = _body_middle(win, lo, hi, np.array([1.0, 0.5]), 0.2, p)
+    assert abs(mid[0]) < 1e-9 and abs(mid[1]) < 1e-9 and not slack.any()
     win.rel_all = rel & ~((x > 0.5) & (x <= 0.6))  # nothing measured beyond the right end
-    assert np.isnan(_body_middle(win, lo, hi, np.array([1.0, 0.5]), 0.2, p)[0])
+    assert np.isnan(_body_middle(win, lo, hi, np.array([1.0, 0.5]), 0.2, p)[0][0])
     # a blob that spans the body: halfway between its ends
-    mid = _body_middle(win, np.array([-0.47, -0.24]), np.array([0.49, 0.24]),
-                       np.array([1.0, 0.5]), 0.2, p)
-    assert abs(mid[0] - 0.01) < 1e-9
+    mid, slack = _body_middle(win, np.array([-0.47, -0.24]), np.array([0.49, 0.24]),
+                              np.array([1.0, 0.5]), 0.2, p)
+    assert abs(mid[0] - 0.01) < 1e-9 and not slack.any()
+    # Nearly all of it, neither end seen (a moulded body's sparse edges): halfway, with
+    # half the shortfall as slack (whole: 0.96 - 2 (0.08 + 0.02) = 0.76 mm).
+    mid, slack = _body_middle(win, np.array([-0.33, -0.24]), np.array([0.37, 0.24]),
+                              np.array([1.0, 0.5]), 0.2, p)
+    assert abs(mid[0] - 0.02) < 1e-9 and abs(slack[0] - 0.03) < 1e-9

@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import math
 
+import numpy as np
 import pytest
 
 from smdinspect.inspect import InspectConfig, Verdict, load_board
@@ -363,3 +364,18 @@ def test_an_extrapolated_meniscus_passes_only_on_what_its_own_pixels_show(c2):
     r = _judge(c2, fit_seen_mm=0.048, **kw)
     assert r.verdict is Verdict.UNRELIABLE and "seen 48 µm" in r.reason
     assert _judge(c2, fit_seen_mm=joint.min_height_mm + 0.01, **kw).verdict is Verdict.OK
+
+
+def test_a_shift_counts_only_beyond_the_slack_of_the_body_position():
+    """A body whose blob's ends could not be told apart is placed at its midpoint with a
+    slack along that axis (``offset_slack_mm``, the part's own x and y): a displacement
+    is a shift only by what it shows beyond the slack, and only along that axis."""
+    from smdinspect.inspect._verdict import _misplaced
+
+    comp = load_board(DEMO).component("U1")
+    a = math.radians(comp.rotation_deg)
+    along_x = np.array([math.cos(a), math.sin(a)])      # the part's own x: across its leads
+    off = 0.45 * along_x                                 # leads ~76 % over their pads' sides
+    assert "over the pad's side" in _misplaced(comp, off)
+    assert _misplaced(comp, off, (0.3, 0.0)) == ""       # could be 0.15 mm: within the limit
+    assert "over the pad's side" in _misplaced(comp, off, (0.0, 0.3))   # slack along y only
