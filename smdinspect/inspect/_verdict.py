@@ -68,7 +68,8 @@ Joint level
     an extrapolation. Such a joint is ``excess`` when the solder area's own percentile
     is already above the band (seen directly), ``missing`` when neither that percentile
     nor the extrapolation reaches ``missing_height_mm``, the fitted meniscus does not
-    rise above that percentile and the pad is measured flat right up to where its solder
+    rise above that percentile (nor fall below −``missing_height_mm``) and the pad is
+    measured flat right up to where its solder
     area starts by the termination (``body_margin_mm`` + a pixel: a fillet's toe need not
     reach the pad's outer part, so a pad flat only there proves nothing; no colour cue),
     ``ok`` when
@@ -454,13 +455,17 @@ def _joint_rule(joint, comp, m: JointMeasurement, comp_result: ComponentResult,
                                     f"(meniscus extrapolated to {_um(h)}, reach "
                                     f"{m.fillet_reach:.0%})")
         if max(seen, h) < config.missing_height_mm and not h > seen \
+                and h > -config.missing_height_mm \
                 and not math.isfinite(m.bare_fraction) and m.fillet_near_mm <= m.fillet_edge_mm:
             # The pad is flat where it is measured, right up to where its solder area
             # starts by the termination, and the meniscus fitted to it does not rise
             # above what is seen: no fillet, no solder. A fit that rises is a fillet
             # whose top is hidden (an extrapolation then reads low, not high: an 0402's
             # at this reach 40-60 % low), and a pad flat only farther out is one whose
-            # fillet's toe stops short of the pixels measured: never "missing".
+            # fillet's toe stops short of the pixels measured: never "missing". Nor is
+            # a fit that falls towards the termination by more than the missing height:
+            # solder does not dip below its pad, so that pad is not read (tuning dense
+            # 25 C3.2, a good 0402: pixels 30-70 µm below the board, fitted to -116 µm).
             return Verdict.MISSING, (f"no solder: the solder area reaches {_um(seen)}, "
                                      f"measured up to its edge by the termination, and the "
                                      f"meniscus fitted to it does not rise above it "

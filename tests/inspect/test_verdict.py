@@ -144,7 +144,8 @@ def test_without_colour_a_flat_pad_is_missing_and_a_low_fillet_insufficient(c2):
 def test_an_extrapolated_meniscus_is_missing_only_where_measured_up_to_the_termination(c2):
     """Only the toe of the fillet measured (reach 25 %, seen 14 µm). A meniscus fitted to
     it that rises towards the termination (29 µm: a good 0402 on a tuning board) is a
-    fillet whose top is hidden: `unreliable`. One that stays flat or falls is a bare pad
+    fillet whose top is hidden: `unreliable`. One that stays flat (or falls by less than
+    the missing height) is a bare pad
     (`missing`) only where the pixels reach the solder area's edge by the termination
     (body margin + a pixel, 100 µm here); measured only farther out, the fillet's toe may
     stop short of them (good 0402s of the test boards, flat 106-130 µm out): `unreliable`."""
@@ -152,7 +153,7 @@ def test_an_extrapolated_meniscus_is_missing_only_where_measured_up_to_the_termi
     r = _judge(c2, max_mm=0.029, max_method="meniscus", fillet_reach=0.25, observed_mm=0.014,
                **edge)
     assert r.verdict is Verdict.UNRELIABLE and "fillet top not measured" in r.reason
-    for fitted in (0.014, 0.005, -0.17):
+    for fitted in (0.014, 0.005, -0.03):
         r = _judge(c2, max_mm=fitted, max_method="meniscus", fillet_reach=0.25,
                    observed_mm=0.014, **edge)
         assert r.verdict is Verdict.MISSING and "does not rise" in r.reason, (fitted, r.reason)
@@ -160,6 +161,12 @@ def test_an_extrapolated_meniscus_is_missing_only_where_measured_up_to_the_termi
                    observed_mm=0.014, fillet_near_mm=0.115, fillet_edge_mm=0.1)
         assert r.verdict is Verdict.UNRELIABLE and "fillet top not measured" in r.reason, \
             (fitted, r.reason)
+    # A fit that falls towards the termination by more than the missing height is no flat
+    # pad: solder does not dip below its pad (tuning dense 25 C3.2, a good 0402 whose
+    # pixels read 30-70 µm below the board, fitted to -116 µm, was called missing).
+    r = _judge(c2, max_mm=-0.116, max_method="meniscus", fillet_reach=0.31, observed_mm=0.024,
+               **edge)
+    assert r.verdict is Verdict.UNRELIABLE and "fillet top not measured" in r.reason
 
 
 def test_gap_limit_is_lower_between_gull_wing_feet(c2):
