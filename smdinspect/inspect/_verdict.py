@@ -38,9 +38,9 @@ Joint level
    their spread): the lead's measured top stands more than ``lifted_lead_gap_mm``
    above its nominal top (solder thickness + lead thickness) and the solder level just
    beyond its toe (else the median beside it, :func:`under_lead`) does not reach the
-   lead's underside (measured top − lead thickness). A raised top with solder up to the underside is a buried foot (its
-   height is then the joint's max, see rule 12), never a lifted lead; a raised foot is
-   never read as a heel fillet.
+   lead's underside (measured top − lead thickness). A raised top with solder up to the
+   underside is a buried foot (its height is then the joint's max, see rule 12), never a
+   lifted lead; a raised foot is never read as a heel fillet.
 7. ``missing`` by colour: at least ``bare_missing_fraction`` of the visible pad looks
    like the bare finish (the all-in-focus colour does not need focus texture) and no
    reliable height reaches the joint's ``min_height_mm``; or at least
@@ -69,12 +69,11 @@ Joint level
     is already above the band (seen directly), ``missing`` when neither that percentile
     nor the extrapolation reaches ``missing_height_mm``, the fitted meniscus does not
     rise above that percentile (nor fall below −``missing_height_mm``) and the pad is
-    measured flat right up to where its solder
-    area starts by the termination (``body_margin_mm`` + a pixel: a fillet's toe need not
-    reach the pad's outer part, so a pad flat only there proves nothing; no colour cue),
-    ``ok`` when
-    that percentile — a lower bound of the fillet height, which rises towards the
-    body — already reaches the band's minimum, or when the reach is at least
+    measured flat right up to where its solder area starts by the termination
+    (``body_margin_mm`` + a pixel: a fillet's toe need not reach the pad's outer part, so
+    a pad flat only there proves nothing; no colour cue), ``ok`` when that percentile —
+    a lower bound of the fillet height, which rises towards the body — already reaches
+    the band's minimum, or when the reach is at least
     :data:`MIN_PASS_REACH` × ``min_fillet_reach`` and the extrapolation lies in the
     band: then the reason says "EXTRAPOLATED" with the reach, and ``max_method`` (in
     every report) reads "meniscus (extrapolated, reach N%)". Otherwise ``unreliable``:
