@@ -847,9 +847,17 @@ class _Canvas:
             _draw_gullwing(ctx)
 
     # -- truth -----------------------------------------------------------------------
-    def field_state(self, comp: Component) -> str:
-        """"in", "partial" or "out": the component's body and pads against the image."""
-        pts = np.vstack([comp.body_polygon_mm()] + [j.polygon_mm for j in comp.joints])
+    def field_state(self, comp: Component, state: dict | None = None) -> str:
+        """"in", "partial" or "out": the component's body (where it stands: ``state``
+        holds a shifted part's ``shift_local`` and ``rotate_deg``) and pads against the
+        image."""
+        body = comp.body_polygon_mm()
+        if state is not None and "shift_local" in state:
+            hl, hw = comp.body_length_mm / 2, comp.body_width_mm / 2
+            corners = np.array([[-hl, -hw], [hl, -hw], [hl, hw], [-hl, hw]])
+            turned = corners @ _rot(state.get("rotate_deg", 0.0)).T + state["shift_local"]
+            body = np.vstack([body, comp.to_board(turned)])
+        pts = np.vstack([body] + [j.polygon_mm for j in comp.joints])
         px = self.to_px(pts)
         inside = (px[:, 0] >= 0) & (px[:, 0] <= self.W - 1) & (px[:, 1] >= 0) & \
             (px[:, 1] <= self.H - 1)
@@ -887,7 +895,7 @@ class _Canvas:
                                  for k, v in sev.items()}
             entry["beyond_limit"] = _beyond_limit(entry["class"], entry["severity"])
             entry["accept"] = sorted(_accept(entry, j, plan))
-            entry["field"] = self.field_state(self.board.component(j.component))
+            entry["field"] = self.field_state(self.board.component(j.component), st)
             joints.append(entry)
         T = np.eye(3)
         T[:2, :2] = self.R

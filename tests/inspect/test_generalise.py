@@ -316,6 +316,32 @@ def test_a_part_shifted_off_its_footprint_is_judged_where_it_stands():
     assert not any(j.verdict is Verdict.OK for j in result.joints if j.id.startswith("R2."))
 
 
+def test_a_part_shifted_out_of_the_field_is_unreliable_not_missing():
+    """Issue 12: a part partly outside the measured field is `unreliable`, never shifted
+    or missing — also when only the part as it stands, not its footprint, runs out of
+    it (tuning demo 21: an 0805 1.24 mm off, 10 % of it in the image, was read
+    `component_missing` from that sliver)."""
+    import dataclasses
+
+    surface, labels, board = truth_surface(DEMO, "R2.1:component_shifted", seed=13,
+                                           params={"R2.1": {"overhang_frac": 0.75}})
+    comp = board.component("R2")
+    shift = np.array(next(j for j in labels["joints"] if j["id"] == "R2.1")["shift_mm"])
+    moved = placed_mask(surface, labels, comp.body_polygon_mm() + shift)
+    kept = placed_mask(surface, labels, comp.body_polygon_mm())
+    for j in comp.joints:
+        kept |= placed_mask(surface, labels, j.polygon_mm)
+    outside = moved & ~kept        # the moved body but where it still lies on its footprint
+    surface.reliable[outside] = False
+    surface = dataclasses.replace(surface, field=~outside)
+    result = inspect_surface(surface, board, IDEAL)
+    r2 = next(c for c in result.components if c.ref == "R2")
+    assert r2.verdict is Verdict.UNRELIABLE and "outside the measured field" in r2.reason
+    for j in result.joints:
+        if j.id.startswith("R2."):
+            assert j.verdict is Verdict.UNRELIABLE, (j.id, j.reason)
+
+
 # -- every class on randomised boards ----------------------------------------------------------
 
 

@@ -22,6 +22,7 @@ import pytest
 from hypothesis import HealthCheck, assume, event, given, settings
 from hypothesis import strategies as st
 
+from smdinspect.inspect import load_board
 from smdinspect.synth._board_scene import FINISHES, SEVERITY
 
 from ._synthetic import DEMO, DENSE, inspect_placed, part_crop, truth_surface
@@ -47,7 +48,13 @@ assert set(CANDIDATES) == set(SEVERITY)
 def _detected(board_file, ref, jid, cls, value, *, seed, finish="enig", rotate_deg=0.0,
               extra=None):
     """(detected, {joint: (verdict, reason)} of the joints the defect touches, labels)."""
-    board, off, shape = part_crop(board_file, ref, rotate_deg=rotate_deg)
+    margin = 0.8
+    if cls == "component_shifted":
+        # the crop holds the part where it stands: a body running out of the field is
+        # not judged (rule 0)
+        part = load_board(board_file).component(ref)
+        margin += max(part.body_length_mm, part.body_width_mm)
+    board, off, shape = part_crop(board_file, ref, rotate_deg=rotate_deg, margin_mm=margin)
     params = {jid: {SEVERITY[cls]["param"]: value, **(extra or {})}}
     surface, labels, board = truth_surface(board, f"{jid}:{cls}", seed=seed, params=params,
                                            offset_mm=off, rotate_deg=rotate_deg, shape=shape,
