@@ -1167,11 +1167,11 @@ def _measure_body(comp, ctx: MeasureContext, win: _Win, level: float,
     body_h = float(np.median(ctx.height[br] - level)) if br.any() else NAN
     offset = (NAN, NAN)
     slack = np.zeros(2)
-    if blob.sum() >= 10:
+    rows, cols = np.nonzero(blob)
+    if rows.size >= 10:
         # The body's centre from its edges (2nd and 98th percentiles of the blob along
         # the part's own axes), not the blob's centroid: unreliable patches inside the
         # body or solder merged at one end do not move the edges.
-        rows, cols = np.nonzero(blob)
         loc = comp.to_local(ctx.px_to_board(cols, rows))
         lo, hi = np.percentile(loc, 2, axis=0), np.percentile(loc, 98, axis=0)
         mid, slack = _body_middle(win, lo, hi, np.array([hl, hw]) * 2,
@@ -1235,14 +1235,13 @@ def _measure_body(comp, ctx: MeasureContext, win: _Win, level: float,
         standing = float(tall.sum() * p * p / (comp.body_length_mm * comp.body_width_mm))
     in_field = min([ctx.in_field(comp.body_polygon_mm())]
                    + [ctx.in_field(j.polygon_mm) for j in comp.joints])
-    if standing < config.standing_fraction and _runs_out(blob, ctx.field):
+    if standing < config.standing_fraction and _runs_out(blob, rows, cols, ctx.field):
         # The body as it stands runs out of the measured field (a part moved towards its
         # edge): what is inside is at most the blob (tuning demo 21: an 0805 1.24 mm off,
         # 10 % of it inside, was read `component_missing` from that sliver). A part stood
         # up is judged on what stands in view (test demo 10008: an 0805 at 75° leaning
         # out of the image, 27 % of its area far above its top).
-        in_field = min(in_field, float(blob.sum() * p * p / (comp.body_length_mm *
-                                                               comp.body_width_mm)))
+        in_field = min(in_field, rows.size * p * p / (comp.body_length_mm * comp.body_width_mm))
     return ComponentMeasurement(comp.ref, frac, present, body_h, offset, tilt, standing, n,
                                 in_field_fraction=in_field, tilt_pixels=n_tilt,
                                 body_mask=blob if blob.any() else None,
@@ -1250,10 +1249,10 @@ def _measure_body(comp, ctx: MeasureContext, win: _Win, level: float,
                                 offset_slack_mm=(float(slack[0]), float(slack[1])))
 
 
-def _runs_out(mask: np.ndarray, field: np.ndarray | None) -> bool:
-    """Whether an image-sized ``mask`` touches the image's border or, with ``field``,
-    a pixel outside the measured field (8-neighbours)."""
-    rows, cols = np.nonzero(mask)
+def _runs_out(mask: np.ndarray, rows: np.ndarray, cols: np.ndarray,
+              field: np.ndarray | None) -> bool:
+    """Whether an image-sized ``mask`` (its pixels at ``rows``, ``cols``) touches the
+    image's border or, with ``field``, a pixel outside the measured field (8-neighbours)."""
     if rows.size == 0:
         return False
     H, W = mask.shape

@@ -847,12 +847,12 @@ class _Canvas:
             _draw_gullwing(ctx)
 
     # -- truth -----------------------------------------------------------------------
-    def field_state(self, comp: Component, state: dict | None = None) -> str:
+    def field_state(self, comp: Component, state: dict) -> str:
         """"in", "partial" or "out": the component's body (where it stands: ``state``
         holds a shifted part's ``shift_local`` and ``rotate_deg``) and pads against the
         image."""
         body = comp.body_polygon_mm()
-        if state is not None and "shift_local" in state:
+        if "shift_local" in state:
             hl, hw = comp.body_length_mm / 2, comp.body_width_mm / 2
             corners = np.array([[-hl, -hw], [hl, -hw], [hl, hw], [-hl, hw]])
             turned = corners @ _rot(state.get("rotate_deg", 0.0)).T + state["shift_local"]
