@@ -117,8 +117,11 @@ def _sff_surface(scene, case, tmp: Path, *, fixed_imaging: bool = False):
     return reconstruct(stack, cfg)
 
 
-def run_case(name: str, seed: int, mode: str, tmp: Path, cache: Path | None = None, *,
-             fixed_imaging: bool = False) -> dict:
+def board_surface(name: str, seed: int, mode: str, tmp: Path, cache: Path | None = None, *,
+                  fixed_imaging: bool = False):
+    """(case, scene, labels, surface) of one randomised board: the surface reconstructed
+    from its rendered stack (``mode`` "sff"; kept in and reused from ``cache``) or the
+    noisy true height map ("truth")."""
     board = load_board(BOARDS[name])
     case = random_board_case(board, seed)
     scene, labels = board_scene(case["board"], **scene_kwargs(case))
@@ -135,6 +138,13 @@ def run_case(name: str, seed: int, mode: str, tmp: Path, cache: Path | None = No
             part = kept.with_suffix(".part")
             part.write_bytes(pickle.dumps(surface, protocol=5))
             part.replace(kept)
+    return case, scene, labels, surface
+
+
+def run_case(name: str, seed: int, mode: str, tmp: Path, cache: Path | None = None, *,
+             fixed_imaging: bool = False) -> dict:
+    case, _, labels, surface = board_surface(name, seed, mode, tmp, cache,
+                                             fixed_imaging=fixed_imaging)
     out = {"board": name, "seed": seed, "lens": case["lens"], "finish": case["finish"],
            "fiducials": case["fiducials"], "edge": case["edge"], "located": True, "joints": []}
     try:
