@@ -215,20 +215,26 @@ def step_levels(height_mm: np.ndarray, reliable: np.ndarray, *, jump_mm: float,
     level); −inf elsewhere."""
     import cv2
 
-    h = height_mm.astype(np.float32)
+    unmeasured = ~reliable
+    buf = height_mm.astype(np.float32)   # a copy: filled in below
     square = np.ones((span_px, span_px), np.uint8)
     # replicated borders: OpenCV's constant border is ∓FLT_MAX, finite under every test
-    hi = cv2.dilate(np.where(reliable, h, -np.inf).astype(np.float32), square,
-                    borderType=cv2.BORDER_REPLICATE)
-    lo = cv2.erode(np.where(reliable, h, np.inf).astype(np.float32), square,
-                   borderType=cv2.BORDER_REPLICATE)
+    buf[unmeasured] = -np.inf
+    hi = cv2.dilate(buf, square, borderType=cv2.BORDER_REPLICATE)
+    buf[unmeasured] = np.inf
+    lo = cv2.erode(buf, square, borderType=cv2.BORDER_REPLICATE)
     with np.errstate(invalid="ignore", over="ignore"):
-        step = reliable & ((hi - lo) > jump_mm)
-        return np.where(step, 0.5 * (hi + lo), -np.inf).astype(np.float32)
+        np.subtract(hi, lo, out=buf)
+        flat = unmeasured | ~(buf > jump_mm)   # not at a step (NaN spans: no step)
+        hi += lo
+        hi *= 0.5
+        hi[flat] = -np.inf
+        return hi
 
 
 def depth_edge_mask(height_mm: np.ndarray, reliable: np.ndarray, *, jump_mm: float,
-                    radius_px: int, span_px: int = 5, wide_span_px: int = 0,
+                    radius_px: int, span_px: int = 5,
+                    wide_span_px: int | tuple[int, ...] = 0,
                     levels: np.ndarray | None = None) -> np.ndarray:
     """(H, W) bool: pixels within ``radius_px`` of a height step, on its high side.
 
@@ -241,8 +247,8 @@ def depth_edge_mask(height_mm: np.ndarray, reliable: np.ndarray, *, jump_mm: flo
 
     The pixels right at a step are often unreliable already (their curves mix the two
     depths), and a gap of unreliable pixels as wide as the square hides the step from
-    it while the bled band beyond the gap stays reliable. With ``wide_span_px`` a
-    second square of that side looks across such gaps, for a rise of more than
+    it while the bled band beyond the gap stays reliable. With ``wide_span_px`` (one
+    side or several) wider squares look across such gaps, each for a rise of more than
     ``jump_mm`` · wide/span (the same slope: a steep fillet is no more a step in the
     wide square than in the narrow one).
 
@@ -255,10 +261,10 @@ def depth_edge_mask(height_mm: np.ndarray, reliable: np.ndarray, *, jump_mm: flo
         level = step_levels(h, reliable, jump_mm=jump_mm, span_px=span_px)
     else:
         level = levels
-    if wide_span_px > span_px:
-        level = np.maximum(level, step_levels(h, reliable,
-                                              jump_mm=jump_mm * wide_span_px / span_px,
-                                              span_px=wide_span_px))
+    for wide in (wide_span_px,) if isinstance(wide_span_px, int) else wide_span_px:
+        if wide > span_px:
+            more = step_levels(h, reliable, jump_mm=jump_mm * wide / span_px, span_px=wide)
+            level = np.maximum(level, more, out=more)
     with np.errstate(invalid="ignore", over="ignore"):
         if not np.isfinite(level).any():
             return np.zeros(h.shape, bool)
@@ -344,6 +350,13 @@ def halo_mask(amplitude: np.ndarray, frame_pos: np.ndarray, candidate: np.ndarra
     """
     return _HaloGroups(amplitude, frame_pos, candidate).mask(
         radius_px=radius_px, min_frames=min_frames, ratio=ratio).reshape(amplitude.shape)
+
+
+def halo_reach_px(radius_px: int) -> int:
+    """Farthest a pixel :func:`halo_mask` flags can lie from the neighbour that explains
+    it, at ``radius_px``: the radius plus what pooling into cells of ``radius_px // 4``
+    px adds (up to a cell less one pixel)."""
+    return radius_px + max(1, radius_px // 4) - 1
 
 
 class _HaloGroups:

@@ -103,7 +103,9 @@ class FocusConfig:
         :func:`smdinspect.sff.centroid_correction`). Default on.
     edge_gap_check : bool
         The depth-edge check also looks across a gap of unreliable pixels at a step:
-        a second square of ``window_px + 2`` px for a rise of the same slope
+        squares of ``window_px + 2`` px and of ``2·(window_px + 3) + 1`` px (the halo
+        test drops up to ``window_px + 2`` px of weak texture beside a strong edge; the
+        larger square sees across such a gap) for a rise of the same slope
         (``edge_jump_steps`` per 5 px; see :func:`smdinspect.sff.depth_edge_mask`).
         Default on.
     precision_check : bool

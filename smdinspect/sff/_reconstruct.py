@@ -22,7 +22,7 @@ from ._blur_order import SIGMAS_PX, blur_order_suspect, reduce_frame
 from ._config import FitMethod, FocusConfig
 from ._confidence import (PRECISION_BOX_WINDOWS, blur_px_per_frame, borrowed_mask,
                           confidence_cues, confidence_map, defocus_halo_mask, depth_edge_mask,
-                          precision_steps, step_levels, unsupported_mask)
+                          halo_reach_px, precision_steps, step_levels, unsupported_mask)
 from ._depth import (PeakTracker, centroid_correction, fit_peaks, masked_gradient,
                      select_curve_power)
 from ._focus import (FocusOperator, band_powers, focus_measure, focus_measure_moments,
@@ -412,8 +412,9 @@ def _measure(run: "_Run", band: tuple[int, int, int, int], *,
                                           n, best_idx, box_px=config.window_px + 6,
                                           ratio=config.blur_order_ratio,
                                           floors=decided.setdefault("order_floors", {}))
+    halo_px = config.window_px + 2   # the halo test's base reach
     fit, confidence, halo, beyond, precision, failed = _level(
-        tracker, z_mm, config, window_px=config.window_px, halo_radius_px=config.window_px + 2,
+        tracker, z_mm, config, window_px=config.window_px, halo_radius_px=halo_px,
         noise_gain=noise_gain, own_px=own_px, decided=decided, grid_rows=(lo, run.shape[0]),
         order=order, order_out=order_out)
     reduced.clear()  # what the check did not take (it was not judged)
@@ -472,7 +473,12 @@ def _measure(run: "_Run", band: tuple[int, int, int, int], *,
     edges = lonely = None
     if config.edge_jump_steps > 0:
         jump = config.edge_jump_steps * stack.step_mm
-        wide = config.window_px + 2 if config.edge_gap_check else 0
+        # The gap of unreliable pixels beside a step is mostly the halo test's: it drops
+        # the weak texture within its base reach of the step's strong edge, leaving the
+        # band bled to the high side beyond it. A square reaching one pixel further than
+        # that each way, from the first pixel past such a gap, sees the other side.
+        gap = halo_reach_px(halo_px)
+        wide = (halo_px, 2 * (gap + 1) + 1) if config.edge_gap_check else 0
         reliable = confidence >= config.min_confidence
         # the steps are found once; each level judges them at its own radius
         levels = step_levels(height, reliable, jump_mm=jump, span_px=EDGE_SPAN_PX)

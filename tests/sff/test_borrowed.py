@@ -54,3 +54,30 @@ def test_depth_edge_mask_spans_a_gap_of_unreliable_pixels():
     slope = np.tile(np.arange(60, dtype=np.float32) * 0.5 * step, (9, 1))  # 0.5 step/px
     assert not depth_edge_mask(slope, np.ones_like(slope, bool), jump_mm=3 * step,
                                radius_px=5, wide_span_px=11).any()
+
+
+def test_depth_edge_mask_spans_a_gap_as_wide_as_the_halo_reach():
+    """The halo test drops the weak texture up to halo_reach_px(11) = 12 px (a 9-px
+    window's base reach, 11 px, plus its pooling) from a step's strong edge: such a gap
+    hides the step from the 11-px square, not from one reaching a pixel past it each way
+    (27 px), which flags the band bled to the high side; slopes of 0.5 step/px stay
+    unflagged in both."""
+    from smdinspect.sff._confidence import halo_reach_px
+
+    step = 0.05
+    gap = halo_reach_px(11)
+    assert gap == 12
+    row = np.r_[np.full(30, 0.02), np.full(gap, np.nan), np.full(30, 1.2)].astype(np.float32)
+    h = np.tile(row, (31, 1))
+    ok = np.isfinite(h)
+    h = np.nan_to_num(h)
+    spans = (11, 2 * (gap + 1) + 1)
+    one = depth_edge_mask(h, ok, jump_mm=3 * step, radius_px=5, wide_span_px=11)
+    two = depth_edge_mask(h, ok, jump_mm=3 * step, radius_px=5, wide_span_px=spans)
+    assert not one.any()
+    high = 30 + gap
+    assert two[15, high:high + 3].all()
+    assert not two[15, :30].any() and not two[15, high + 6:].any()
+    slope = np.tile(np.arange(90, dtype=np.float32) * 0.5 * step, (31, 1))
+    assert not depth_edge_mask(slope, np.ones_like(slope, bool), jump_mm=3 * step,
+                               radius_px=5, wide_span_px=spans).any()
