@@ -6,7 +6,7 @@ the board) is put in a bin of its true surface slope, and each bin reports its s
 reliable pixels, the reasons the others are unreliable (``reason.png``'s), and the
 height error (surface − truth, µm) of the reliable pixels and of each reason's. This is
 what limits a chip's fillet: its upper part, steeper than ~45°, is where its height is
-(see the README's "Where a fillet's height is lost").
+(README, "Weak spots" of the inspection benchmark).
 
     .venv/bin/python benchmarks/solder_slopes.py --seeds tuning --first 28 --boards 6 --cache cache/
 

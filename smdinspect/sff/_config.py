@@ -103,11 +103,11 @@ class FocusConfig:
         :func:`smdinspect.sff.centroid_correction`). Default on.
     edge_gap_check : bool
         The depth-edge check also looks across a gap of unreliable pixels at a step:
-        squares of ``window_px + 2`` px and of ``2·(window_px + 3) + 1`` px (the halo
-        test drops up to ``window_px + 2`` px of weak texture beside a strong edge; the
-        larger square sees across such a gap) for a rise of the same slope
-        (``edge_jump_steps`` per 5 px; see :func:`smdinspect.sff.depth_edge_mask`).
-        Default on.
+        squares of ``window_px + 2`` px and of ``2·(r + 1) + 1`` px, r the farthest the
+        halo test drops weak texture from a strong edge (``window_px + 2`` plus its
+        pooling, :func:`~smdinspect.sff._confidence.halo_reach_px`: 27 px for a 9-px
+        window), for a rise of the same slope (``edge_jump_steps`` per 5 px; see
+        :func:`smdinspect.sff.depth_edge_mask`). Default on.
     precision_check : bool
         Judge each height's random error (the precision cue: the even/odd split of its
         focus curve, :func:`smdinspect.sff.precision_steps`): unreliable where its 1σ
