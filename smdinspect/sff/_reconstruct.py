@@ -479,12 +479,16 @@ def _measure(run: "_Run", band: tuple[int, int, int, int], *,
         # that each way, from the first pixel past such a gap, sees the other side.
         gap = halo_reach_px(halo_px)
         wide = (halo_px, 2 * (gap + 1) + 1) if config.edge_gap_check else 0
+        # the halo check's reach grows with the depth gap (2κg px): beside a tall step
+        # its gap is wider, and read over the gap's borders alone
+        gaps = tuple(2 * (r + 1) + 1 for r in (gap, 2 * gap + 1, 4 * gap + 3)) \
+            if config.edge_gap_check else ()
         reliable = confidence >= config.min_confidence
         # the steps are found once; each level judges them at its own radius
         levels = step_levels(height, reliable, jump_mm=jump, span_px=EDGE_SPAN_PX)
         edges = depth_edge_mask(height, reliable, jump_mm=jump, span_px=EDGE_SPAN_PX,
                                 radius_px=config.window_px // 2 + 1, wide_span_px=wide,
-                                levels=levels)
+                                gap_spans_px=gaps, levels=levels)
         for level, use in zip(coarse, filled):
             if use.any():  # a coarse window bleeds the higher side over half its width
                 edges |= use & depth_edge_mask(

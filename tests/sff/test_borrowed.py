@@ -81,3 +81,29 @@ def test_depth_edge_mask_spans_a_gap_as_wide_as_the_halo_reach():
     slope = np.tile(np.arange(90, dtype=np.float32) * 0.5 * step, (31, 1))
     assert not depth_edge_mask(slope, np.ones_like(slope, bool), jump_mm=3 * step,
                                radius_px=5, wide_span_px=spans).any()
+
+
+def test_depth_edge_mask_looks_across_a_gap_that_grows_with_the_step():
+    """Beside a tall step the halo check's gap is wider than the 27-px square reaches
+    (2·12 + 1 = 25 px here): a square of 53 px over the gap's border pixels sees both
+    sides and flags the band bled to the high side; the low side keeps its heights, and
+    a slope of 0.5 step/px interrupted by the same gap stays unflagged."""
+    step = 0.05
+    gap = 25
+    row = np.r_[np.full(40, 0.02), np.full(gap, np.nan), np.full(40, 1.5)].astype(np.float32)
+    h = np.tile(row, (41, 1))
+    ok = np.isfinite(h)
+    h = np.nan_to_num(h)
+    spans = (11, 27)
+    without = depth_edge_mask(h, ok, jump_mm=3 * step, radius_px=5, wide_span_px=spans)
+    across = depth_edge_mask(h, ok, jump_mm=3 * step, radius_px=5, wide_span_px=spans,
+                             gap_spans_px=(53,))
+    assert not without.any()
+    high = 40 + gap
+    assert across[20, high:high + 3].all()
+    assert not across[20, :40].any() and not across[20, high + 6:].any()
+    slope = np.tile(np.arange(105, dtype=np.float32) * 0.5 * step, (41, 1))
+    cut = np.ones_like(slope, bool)
+    cut[:, 40:40 + gap] = False
+    assert not depth_edge_mask(slope, cut, jump_mm=3 * step, radius_px=5,
+                               wide_span_px=spans, gap_spans_px=(53,)).any()
