@@ -108,8 +108,8 @@ class FocusConfig:
         pooling, :func:`~smdinspect.sff._confidence.halo_reach_px`: 27 px for a 9-px
         window), for a rise of the same slope (``edge_jump_steps`` per 5 px); and,
         beside a tall step, where the halo test's reach grows with the depth gap,
-        squares of 27, 53 and 105 px over the pixels bordering a gap only, for that
-        slope over half the square (see
+        a square of 53 px over the pixels bordering a gap only, for that slope over
+        half the square (see
         :func:`smdinspect.sff.depth_edge_mask`, ``gap_spans_px``). Default on.
     precision_check : bool
         Judge each height's random error (the precision cue: the even/odd split of its

@@ -480,9 +480,10 @@ def _measure(run: "_Run", band: tuple[int, int, int, int], *,
         gap = halo_reach_px(halo_px)
         wide = (halo_px, 2 * (gap + 1) + 1) if config.edge_gap_check else 0
         # the halo check's reach grows with the depth gap (2κg px): beside a tall step
-        # its gap is wider, and read over the gap's borders alone
-        gaps = tuple(2 * (r + 1) + 1 for r in (gap, 2 * gap + 1, 4 * gap + 3)) \
-            if config.edge_gap_check else ()
+        # its gap is up to twice as wide, read over the gap's borders alone (53 px for
+        # a 9-px window; the gap's 27-px square, or a 105-px one, added nothing on the
+        # tuning boards but dropped good pixels)
+        gaps = (2 * (2 * gap + 2) + 1,) if config.edge_gap_check else ()
         reliable = confidence >= config.min_confidence
         # the steps are found once; each level judges them at its own radius
         levels = step_levels(height, reliable, jump_mm=jump, span_px=EDGE_SPAN_PX)
