@@ -43,7 +43,7 @@ def register(sub: argparse._SubParsersAction) -> None:
     t.add_argument("--seed", type=int, default=0,
                    help="study seed (default 0; keep 0-999 for tuning, 10000-10999 for tests)")
     t.add_argument("--workers", type=int, default=2,
-                   help="cells computed at once, one thread each (default 2)")
+                   help="cells computed at once, one process each (default 2)")
     t.add_argument("--operators", default=None, metavar="OP,OP",
                    help="only these operators (comma-separated; default all 25)")
     _add_verbosity(t, "sub_")
