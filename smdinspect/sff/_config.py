@@ -107,10 +107,10 @@ class FocusConfig:
         halo test drops weak texture from a strong edge (``window_px + 2`` plus its
         pooling, :func:`~smdinspect.sff._confidence.halo_reach_px`: 27 px for a 9-px
         window), for a rise of the same slope (``edge_jump_steps`` per 5 px); and,
-        beside a tall step, where the halo test's reach grows with the depth gap,
-        a square of 53 px over the pixels bordering a gap only, for that slope over
-        half the square (see
-        :func:`smdinspect.sff.depth_edge_mask`, ``gap_spans_px``). Default on.
+        beside a tall step, where the halo test's reach grows with the depth gap, a
+        square of 53 px over the pixels bordering a gap only, for that slope over half
+        the square (see :func:`smdinspect.sff.depth_edge_mask`, ``gap_spans_px``).
+        Default on.
     precision_check : bool
         Judge each height's random error (the precision cue: the even/odd split of its
         focus curve, :func:`smdinspect.sff.precision_steps`): unreliable where its 1σ

@@ -481,8 +481,8 @@ def _measure(run: "_Run", band: tuple[int, int, int, int], *,
         wide = (halo_px, 2 * (gap + 1) + 1) if config.edge_gap_check else 0
         # the halo check's reach grows with the depth gap (2κg px): beside a tall step
         # its gap is up to twice as wide, read over the gap's borders alone (53 px for
-        # a 9-px window; the gap's 27-px square, or a 105-px one, added nothing on the
-        # tuning boards but dropped good pixels)
+        # a 9-px window; on the tuning boards a 105-px square added nothing and a 27-px
+        # one dropped good pixels)
         gaps = (2 * (2 * gap + 2) + 1,) if config.edge_gap_check else ()
         reliable = confidence >= config.min_confidence
         # the steps are found once; each level judges them at its own radius
