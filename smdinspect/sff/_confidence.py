@@ -235,7 +235,7 @@ def step_levels(height_mm: np.ndarray, reliable: np.ndarray, *, jump_mm: float,
 def depth_edge_mask(height_mm: np.ndarray, reliable: np.ndarray, *, jump_mm: float,
                     radius_px: int, span_px: int = 5,
                     wide_span_px: int | tuple[int, ...] = 0,
-                    gap_spans_px: tuple[int, ...] = (),
+                    gap_span_px: int = 0,
                     levels: np.ndarray | None = None) -> np.ndarray:
     """(H, W) bool: pixels within ``radius_px`` of a height step, on its high side.
 
@@ -253,8 +253,8 @@ def depth_edge_mask(height_mm: np.ndarray, reliable: np.ndarray, *, jump_mm: flo
     ``jump_mm`` · wide/span (the same slope: a steep fillet is no more a step in the
     wide square than in the narrow one).
 
-    ``gap_spans_px`` looks across wider gaps (those the halo check leaves beside a tall
-    step grow with the step): squares of those sides over the pixels that border an
+    ``gap_span_px`` looks across wider gaps (those the halo check leaves beside a tall
+    step grow with the step): a square of that side over the pixels that border an
     unreliable one only, for a rise steeper than the step's slope (``jump_mm`` per
     ``span_px − 1`` px) over half the square, the most a gap can span from the
     square's centre. A continuous measured slope has no such pixels inside it, so a
@@ -274,16 +274,13 @@ def depth_edge_mask(height_mm: np.ndarray, reliable: np.ndarray, *, jump_mm: flo
             more = step_levels(h, reliable, jump_mm=jump_mm * wide / span_px, span_px=wide)
             level = np.maximum(level, more, out=more)
     flagged = _above_step(h, level, radius_px)
-    if gap_spans_px:
+    if gap_span_px > span_px:
         import cv2
 
         unmeasured = (~reliable).view(np.uint8)
         border = reliable & (cv2.dilate(unmeasured, np.ones((3, 3), np.uint8)) > 0)
-        across = None
-        for side in gap_spans_px:
-            more = step_levels(h, border, span_px=side,
-                               jump_mm=jump_mm * (side - 1) / (2 * (span_px - 1)))
-            across = more if across is None else np.maximum(across, more, out=more)
+        across = step_levels(h, border, span_px=gap_span_px,
+                             jump_mm=jump_mm * (gap_span_px - 1) / (2 * (span_px - 1)))
         # judged apart: a gap's level (the middle of a tall rise) must not raise the
         # level the pixels beside a nearer, lower step are judged by
         flagged |= _above_step(h, across, radius_px)

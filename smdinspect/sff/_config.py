@@ -109,7 +109,7 @@ class FocusConfig:
         window), for a rise of the same slope (``edge_jump_steps`` per 5 px); and,
         beside a tall step, where the halo test's reach grows with the depth gap, a
         square of 53 px over the pixels bordering a gap only, for that slope over half
-        the square (see :func:`smdinspect.sff.depth_edge_mask`, ``gap_spans_px``).
+        the square (see :func:`smdinspect.sff.depth_edge_mask`, ``gap_span_px``).
         Default on.
     precision_check : bool
         Judge each height's random error (the precision cue: the even/odd split of its

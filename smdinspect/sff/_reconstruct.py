@@ -483,13 +483,13 @@ def _measure(run: "_Run", band: tuple[int, int, int, int], *,
         # its gap is up to twice as wide, read over the gap's borders alone (53 px for
         # a 9-px window; on the tuning boards a 105-px square added nothing and a 27-px
         # one dropped good pixels)
-        gaps = (2 * (2 * gap + 2) + 1,) if config.edge_gap_check else ()
+        across = 2 * (2 * gap + 2) + 1 if config.edge_gap_check else 0
         reliable = confidence >= config.min_confidence
         # the steps are found once; each level judges them at its own radius
         levels = step_levels(height, reliable, jump_mm=jump, span_px=EDGE_SPAN_PX)
         edges = depth_edge_mask(height, reliable, jump_mm=jump, span_px=EDGE_SPAN_PX,
                                 radius_px=config.window_px // 2 + 1, wide_span_px=wide,
-                                gap_spans_px=gaps, levels=levels)
+                                gap_span_px=across, levels=levels)
         for level, use in zip(coarse, filled):
             if use.any():  # a coarse window bleeds the higher side over half its width
                 edges |= use & depth_edge_mask(

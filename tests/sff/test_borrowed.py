@@ -97,7 +97,7 @@ def test_depth_edge_mask_looks_across_a_gap_that_grows_with_the_step():
     spans = (11, 27)
     without = depth_edge_mask(h, ok, jump_mm=3 * step, radius_px=5, wide_span_px=spans)
     across = depth_edge_mask(h, ok, jump_mm=3 * step, radius_px=5, wide_span_px=spans,
-                             gap_spans_px=(53,))
+                             gap_span_px=53)
     assert not without.any()
     high = 40 + gap
     assert across[20, high:high + 3].all()
@@ -106,4 +106,4 @@ def test_depth_edge_mask_looks_across_a_gap_that_grows_with_the_step():
     cut = np.ones_like(slope, bool)
     cut[:, 40:40 + gap] = False
     assert not depth_edge_mask(slope, cut, jump_mm=3 * step, radius_px=5,
-                               wide_span_px=spans, gap_spans_px=(53,)).any()
+                               wide_span_px=spans, gap_span_px=53).any()
