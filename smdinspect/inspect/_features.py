@@ -543,6 +543,7 @@ def global_body_pose(height, reliable, board, p, *, T_nominal: np.ndarray,
     best = (0, 0.0, [])
     best_T = None
     n_hyp = 0
+    scored: list[tuple[int, np.ndarray]] = []  # (support, placement) of every hypothesis
     for i in range(len(cand)):
         for j in range(i + 1, len(cand)):
             if cidx[i] == cidx[j] or cand[i][1] is cand[j][1]:
@@ -567,6 +568,7 @@ def global_body_pose(height, reliable, board, p, *, T_nominal: np.ndarray,
             else:
                 n_hyp += 1
                 s = support(T)
+                scored.append((s[0], T))
                 if s[:2] > best[:2]:
                     best, best_T = s, T
     if best_T is None or best[0] < 2:
@@ -574,5 +576,13 @@ def global_body_pose(height, reliable, board, p, *, T_nominal: np.ndarray,
     keep = best[2]
     T = fit_rigid2d(src[keep], dst[keep])
     res = np.hypot(*(apply2d(T, src[keep]) - dst[keep]).T)
+    # The best support of a placement elsewhere (the board's corners more than 2 tol_mm
+    # away): a layout with repeated parts offers a second placement nearly as well
+    # supported, a generic one none.
+    corners = board.outline_mm()
+    rival = max((n for n, Ti in scored
+                 if np.max(np.hypot(*(apply2d(Ti, corners) - apply2d(best_T, corners)).T))
+                 > 2 * tol_mm), default=0)
     return T, {"support": sorted(comps[cidx[k]].ref for k in keep), "hypotheses": n_hyp,
+               "rival_support": int(rival),
                "rms_mm": round(float(np.sqrt(np.mean(res ** 2))), 5)}

@@ -229,3 +229,58 @@ def test_a_far_body_is_kept_against_a_cluster_of_small_ones():
     assert info["used"] == ["body:U2", "body:R1", "body:C1", "body:R2", "body:R3"]
     angle = np.degrees(np.arctan2(T_fit[1, 0], T_fit[0, 0]))
     assert abs(angle - 3.5) < 0.1, angle
+
+
+def test_an_unambiguous_body_layout_locates_a_board_without_fiducials_whose_parts_are_mostly_defective():
+    # Two good bodies of six vouch for the placement (too few for the majority rule),
+    # and the missing SOIC-8 takes most of the reference coverage with it. No other
+    # placement is supported by two bodies and the measured raised points lie on the
+    # reference, so the layout's placement stands (tuning seed 202 through shape from
+    # focus: both boards were lost this way).
+    surface, labels, board = truth_surface(
+        DEMO, "U1.1:component_missing,R2.1:component_missing,R1.1:tombstone,"
+              "C1.1:component_missing", seed=3, offset_mm=(1.0, -0.8), rotate_deg=2.5,
+        fiducials=False)
+    result = inspect_surface(surface, board)
+    reg = result.registration
+    layout = reg.meta["body_layout"]
+    assert reg.meta["located_by_layout"], layout
+    assert layout["support"] == ["C2", "R3"] and layout["rival_support"] < 2
+    T_true = np.array(labels["placement"]["board_to_world"])
+    assert _corner_error_mm(reg.transform, T_true, board) < 0.01
+    verdicts = {j.component: j.verdict.value for j in result.joints}
+    assert verdicts["U1"] == verdicts["R2"] == verdicts["C1"] == "component_missing"
+    assert verdicts["R1"] == "tombstone" and verdicts["C2"] == verdicts["R3"] == "ok"
+
+
+def test_a_body_layout_with_an_equally_supported_rival_placement_does_not_locate_the_board():
+    # The same board with R1 shifted instead of tombstoned: its body pairs with a good
+    # one into a second placement that two bodies support as well. The layout alone
+    # cannot tell them apart, so without fiducials the board stays not located.
+    surface, _, board = truth_surface(
+        DEMO, "U1.1:component_missing,R2.1:component_missing,R1.2:component_shifted,"
+              "C1.1:component_missing", seed=3, offset_mm=(1.0, -0.8), rotate_deg=2.5,
+        fiducials=False)
+    reg = register_board(surface.height_mm, surface.reliable, board,
+                         pixel_size_mm=surface.pixel_size_mm, aif=surface.aif)
+    assert reg.meta["body_layout"]["rival_support"] == 2
+    assert not reg.converged and not reg.meta["located_by_layout"]
+
+
+def test_fiducials_locate_a_board_whose_raised_points_are_mostly_defects():
+    # Test seed demo 10064 as true heights: the SOIC-8 missing, the 1206 stood at 50°,
+    # a bulging excess fillet. Three fiducials and three bodies agree with the
+    # placement, but under half the measured raised points lie on the reference: what
+    # stands off it is for the verdicts to name, not a reason to lose the board.
+    surface, labels, board = truth_surface(
+        DEMO, "U1.1:component_missing,C1.1:tombstone,R1.1:excess", seed=3,
+        offset_mm=(-1.2, 1.8), rotate_deg=-1.0,
+        params={"C1.1": {"tilt_deg": 50.0}, "R1.1": {"over_mm": 0.17, "style": "convex"}})
+    result = inspect_surface(surface, board)
+    reg = result.registration
+    assert reg.meta["located_by_fiducials"] and reg.meta["forward_fitness"] < 0.6
+    T_true = np.array(labels["placement"]["board_to_world"])
+    assert _corner_error_mm(reg.transform, T_true, board) < 0.01
+    verdicts = {j.id: j.verdict.value for j in result.joints}
+    assert verdicts["U1.1"] == "component_missing" and verdicts["C1.1"] == "tombstone"
+    assert verdicts["R1.1"] == "excess"
