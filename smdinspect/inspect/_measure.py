@@ -191,6 +191,9 @@ class ComponentMeasurement:
     #: how far the body's middle may lie from the offset read, along the part's own x
     #: and y (its blob's ends could not be told apart: :func:`_body_middle`)
     offset_slack_mm: tuple[float, float] = (0.0, 0.0)
+    #: gull-wing parts: how far the body is turned from its nominal rotation (deg,
+    #: counter-clockwise; :func:`_body_turn`), NaN where not measured
+    turn_deg: float = NAN
 
 
 @dataclass
@@ -1209,7 +1212,22 @@ def _measure_body(comp, ctx: MeasureContext, win: _Win, level: float,
                 (np.abs(win.ly - yc) <= max((y1 - y0) / 2 - mg, 0.25 * (y1 - y0) / 2)) & \
                 win.rel_all
         tilt, n_tilt, plane, u2 = _body_tilt(win, middle, floor_mm=0.5 * body_top_mm(comp),
-                                             at_x_mm=hl - t / 2.0)
+                                             at_x_mm=hl - t / 2.0,
+                                             min_span_mm=max(hl - t - 0.05, 0.25 * hl))
+        if plane is not None and tilt > config.tombstone_tilt_deg \
+                and plane[2] - body_top_mm(comp) < 0.25 * comp.body_length_mm * math.sin(math.radians(tilt)):
+            # A chip tilted by θ pivots on its low end, so its middle stands (L/2)·sin θ
+            # above the nominal top; a middle at the nominal top (less than half that) is
+            # a level body whose measured slope is borrowed from solder piled at one end
+            # (test seeds dense 10064 and 10068, demo 10078: 0402s with 0.16-0.2 mm of
+            # excess over one cap read 8-10 deg with their middles 2-6 µm from the
+            # nominal top, where the tilt would put them 73-83 µm above it; the true
+            # tombstones read over 8 deg on these and tuning boards 200-215 stand
+            # 318-1274 µm above it).
+            # The body is then level: its plane along the part is the middle's median.
+            sel = middle & (win.h > 0.5 * body_top_mm(comp))
+            plane = (0.0, plane[1], float(np.median(win.h[sel] - plane[1] * win.ly[sel])))
+            tilt = 0.0
         # An upright part stands far above the nominal top over much of its footprint, or,
         # stood on end (up to 90 deg), on its end pad up to a body height beyond the
         # body's end; a tall blob that reaches into another part's footprint is that part
@@ -1242,11 +1260,35 @@ def _measure_body(comp, ctx: MeasureContext, win: _Win, level: float,
         # up is judged on what stands in view (test demo 10008: an 0805 at 75° leaning
         # out of the image, 27 % of its area far above its top).
         in_field = min(in_field, rows.size * p * p / (comp.body_length_mm * comp.body_width_mm))
+    turn = _body_turn(comp, loc) if comp.kind == "gullwing" and rows.size >= 10 else NAN
     return ComponentMeasurement(comp.ref, frac, present, body_h, offset, tilt, standing, n,
                                 in_field_fraction=in_field, tilt_pixels=n_tilt,
                                 body_mask=blob if blob.any() else None,
                                 top_plane=plane, top_plane_u2_mm=u2,
-                                offset_slack_mm=(float(slack[0]), float(slack[1])))
+                                offset_slack_mm=(float(slack[0]), float(slack[1])),
+                                turn_deg=turn)
+
+
+def _body_turn(comp, loc: np.ndarray) -> float:
+    """How far a body is turned from its nominal rotation (deg, counter-clockwise), from
+    the smallest rectangle around its blob (``loc``: the blob's pixels in the part's
+    own frame, mm); NaN unless that rectangle has the body's size within 20 % (a blob
+    cut by the field or merged with something else has no meaningful orientation).
+
+    A gull-wing part turned by θ moves its outer leads sideways by up to half its lead
+    span times sin θ whatever its centre does (an SOIC-8 at 4°: 0.19 mm, half a lead's
+    width), which the centre's offset alone does not show.
+    """
+    import cv2
+
+    (_, _), (w, h), angle = cv2.minAreaRect(np.asarray(loc, np.float32))
+    box = cv2.boxPoints(((0.0, 0.0), (w, h), angle))
+    edge = box[1] - box[0]
+    size = sorted((comp.body_length_mm, comp.body_width_mm))
+    if not all(abs(a - b) <= 0.2 * b for a, b in zip(sorted((w, h)), size)):
+        return NAN
+    # the rectangle's edge direction, folded to within ±45° of the part's own axes
+    return float((math.degrees(math.atan2(edge[1], edge[0])) + 45.0) % 90.0 - 45.0)
 
 
 def _runs_out(mask: np.ndarray, rows: np.ndarray, cols: np.ndarray,
@@ -1269,14 +1311,19 @@ def _runs_out(mask: np.ndarray, rows: np.ndarray, cols: np.ndarray,
 
 
 def _body_tilt(win: _Win, rel: np.ndarray, *, floor_mm: float = 0.1,
-               at_x_mm: float = 0.0) -> tuple[float, int, tuple | None, float]:
+               at_x_mm: float = 0.0,
+               min_span_mm: float = 0.0) -> tuple[float, int, tuple | None, float]:
     """Tilt (deg) along the component's axis of a plane fitted to the raised body pixels,
     the number of pixels it was fitted to, the plane (a, b, c: h = a·x + b·y + c in the
     part's frame) and twice the standard error of its height at x = ±``at_x_mm``, y = 0
     (the larger of the two ends).
 
     Pixels lower than ``floor_mm`` are left out (a tombstoned chip's lower end exposes
-    the pad); the fit is a robust least-squares plane (two passes)."""
+    the pad); the fit is a robust least-squares plane (two passes). The pixels it keeps
+    must span ``min_span_mm`` along the axis: a plane through a strip a pixel or two
+    wide across the body has no measured slope along it (tuning seed dense 205: an
+    0402's 11 pixels 26 µm apart read 68.5° and made a good part a tombstone), so the
+    tilt and the plane are then unknown (NaN, None)."""
     sel = rel & (win.h > floor_mm)
     if sel.sum() < 10:
         return NAN, int(sel.sum()), None, NAN
@@ -1292,6 +1339,8 @@ def _body_tilt(win: _Win, rel: np.ndarray, *, floor_mm: float = 0.1,
         keep = np.abs(res) <= 3 * s
         if keep.sum() < 10:
             break
+    if keep.any() and float(np.ptp(x[keep])) < min_span_mm:
+        return NAN, int(sel.sum()), None, NAN
     u2 = NAN
     if keep.sum() >= 10:
         cov = np.linalg.pinv(A[keep].T @ A[keep]) * s * s

@@ -186,7 +186,8 @@ def judge_component(comp, m: ComponentMeasurement, config: InspectConfig) -> Com
         reason = (f"only {m.present_fraction:.0%} of the body footprint stands at body height "
                   f"(< {config.component_present_fraction:.0%})")
     elif all(map(math.isfinite, m.offset_mm)):
-        why = _misplaced(comp, np.asarray(m.offset_mm, np.float64), m.offset_slack_mm)
+        why = _misplaced(comp, np.asarray(m.offset_mm, np.float64), m.offset_slack_mm,
+                         turn_deg=m.turn_deg)
         if why:
             verdict = Verdict.COMPONENT_SHIFTED
             reason = why
@@ -200,28 +201,34 @@ def judge_component(comp, m: ComponentMeasurement, config: InspectConfig) -> Com
 MAX_SIDE_OVERHANG = 0.5
 
 
-def _misplaced(comp, offset: np.ndarray, slack=(0.0, 0.0)) -> str:
+def _misplaced(comp, offset: np.ndarray, slack=(0.0, 0.0), *, turn_deg: float = 0.0) -> str:
     """Why the part's displacement ``offset`` (BOARD frame, mm) is a defect ("" if not).
 
     ``slack``: how far the body's middle may lie from it along the part's own x and y;
-    a displacement counts only by what it shows beyond that."""
+    a displacement counts only by what it shows beyond that. ``turn_deg``: how far the
+    body is turned (counter-clockwise; NaN or 0: not turned); each joint is then
+    displaced by the offset plus what the turn moves its pad's centre."""
     worst = ""
     worst_v = 0.0
     centred_body = comp.body_polygon_mm() - [comp.x_mm, comp.y_mm]
     a = math.radians(comp.rotation_deg)
     ex, ey = np.array([math.cos(a), math.sin(a)]), np.array([-math.sin(a), math.cos(a)])
-
-    def shown(d: np.ndarray) -> float:
-        """The displacement along ``d`` less the slack along it (towards zero)."""
-        x = float(offset @ d)
-        s = abs(float(d @ ex)) * slack[0] + abs(float(d @ ey)) * slack[1]
-        return math.copysign(max(abs(x) - s, 0.0), x)
+    t = math.radians(turn_deg) if math.isfinite(turn_deg) else 0.0
+    turn = np.array([[math.cos(t) - 1.0, -math.sin(t)], [math.sin(t), math.cos(t) - 1.0]])
 
     for j in comp.joints:
+        pad = np.asarray(j.polygon_mm, np.float64) - [comp.x_mm, comp.y_mm]
+        moved = offset + turn @ ((pad.min(0) + pad.max(0)) / 2.0)
+
+        def shown(d: np.ndarray) -> float:
+            """The joint's displacement along ``d`` less the slack along it (towards 0)."""
+            x = float(moved @ d)
+            s = abs(float(d @ ex)) * slack[0] + abs(float(d @ ey)) * slack[1]
+            return math.copysign(max(abs(x) - s, 0.0), x)
+
         out = np.asarray(j.outward, np.float64)
         out = out / max(float(np.hypot(*out)), 1e-12)
         acr = np.array([-out[1], out[0]])
-        pad = np.asarray(j.polygon_mm, np.float64) - [comp.x_mm, comp.y_mm]
         pad_w = float(np.ptp(pad @ acr))
         if comp.kind == "gullwing" and comp.lead:
             term_w = float(comp.lead["width_mm"])
@@ -234,7 +241,7 @@ def _misplaced(comp, offset: np.ndarray, slack=(0.0, 0.0)) -> str:
             worst = (f"{j.id}: the {'lead' if comp.kind == 'gullwing' else 'termination'} "
                      f"hangs {frac:.0%} of its width over the pad's side (> "
                      f"{MAX_SIDE_OVERHANG:.0%}); body off by {float(offset @ acr):+.3f} mm "
-                     f"across the pad")
+                     f"across the pad" + (f", turned {turn_deg:+.1f} deg" if t else ""))
         along = shown(out)
         if comp.kind == "gullwing" and comp.lead:
             heel = float(comp.lead["span_mm"]) / 2 - float(comp.lead["foot_length_mm"])
