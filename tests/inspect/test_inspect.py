@@ -154,6 +154,12 @@ def test_a_part_stood_on_end_is_a_tombstone(ref, jid):
         assert comp.verdict == Verdict.TOMBSTONE, (tilt, comp.reason)
 
 
+def _across(part, x0: float, x1: float) -> np.ndarray:
+    """The band x0 <= x <= x1 across a part's body, in its own frame, as a board polygon."""
+    hw = part.body_width_mm / 2
+    return part.to_board(np.array([[x0, -hw], [x1, -hw], [x1, hw], [x0, hw]]))
+
+
 def test_a_body_measured_in_a_strip_across_it_has_no_tilt_and_is_not_a_tombstone():
     """Shape from focus can leave a chip's body reliable in a strip one or two pixels
     wide across it, two columns a step apart: a plane through it has any slope along
@@ -166,15 +172,12 @@ def test_a_body_measured_in_a_strip_across_it_has_no_tilt_and_is_not_a_tombstone
     part = board.component("C2")
     # the body's middle (what the tilt is fitted to); the rest stays measured
     hm = part.body_length_mm / 2 - part.termination_length_mm - 0.05
-    hw = part.body_width_mm / 2
     s, labels, b = truth_surface(board, "", seed=2, offset_mm=off, shape=shape)
-    body = placed_mask(s, labels, part.to_board(np.array([[-hm, -hw], [hm, -hw], [hm, hw],
-                                                            [-hm, hw]])))
+    body = placed_mask(s, labels, _across(part, -hm, hm))
     rel, h = np.array(s.reliable), np.array(s.height_mm)
     rel[body] = False
     for x0, dz in ((-hm, 0.0), (-hm + 0.02, 0.05)):  # two pixel columns across the body
-        strip = placed_mask(s, labels, part.to_board(np.array(
-            [[x0, -hw], [x0 + 0.02, -hw], [x0 + 0.02, hw], [x0, hw]])))
+        strip = placed_mask(s, labels, _across(part, x0, x0 + 0.02))
         rel[strip & body] = True
         h[strip & body] += dz
     s = dataclasses.replace(s, height_mm=h, reliable=rel)
@@ -199,15 +202,12 @@ def test_a_slope_borrowed_from_excess_solder_at_one_end_is_not_a_tilt():
     board, off, shape = part_crop(DEMO, "C2")
     part = board.component("C2")
     hm = part.body_length_mm / 2 - part.termination_length_mm
-    hw = part.body_width_mm / 2
     s, labels, b = truth_surface(board, "C2.2:excess", seed=2, offset_mm=off, shape=shape,
                                  params={"C2.2": {"over_mm": 0.17, "style": "cap"}})
     h = np.array(s.height_mm)
     slope = -np.tan(np.radians(9.5))  # rising towards C2.2's end (the part's -x side)
     for x0 in np.arange(-hm, hm, 0.02):
-        band = placed_mask(s, labels, part.to_board(np.array(
-            [[x0, -hw], [x0 + 0.02, -hw], [x0 + 0.02, hw], [x0, hw]])))
-        h[band] += slope * (x0 + 0.01)
+        h[placed_mask(s, labels, _across(part, x0, x0 + 0.02))] += slope * (x0 + 0.01)
     got = inspect_placed(dataclasses.replace(s, height_mm=h), b, labels)
     (comp,) = got.components
     joints = {j.id: j for j in got.joints}
