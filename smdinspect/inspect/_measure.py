@@ -1221,8 +1221,9 @@ def _measure_body(comp, ctx: MeasureContext, win: _Win, level: float,
         tilt, n_tilt, plane, u2 = _body_tilt(win, middle, floor_mm=0.5 * body_top_mm(comp),
                                              at_x_mm=hl - t / 2.0,
                                              min_span_mm=max(hl - t - 0.05, 0.25 * hl))
+        lift = 0.25 * comp.body_length_mm * math.sin(math.radians(tilt))  # half of (L/2)·sin θ
         if plane is not None and tilt > config.tombstone_tilt_deg \
-                and plane[2] - body_top_mm(comp) < 0.25 * comp.body_length_mm * math.sin(math.radians(tilt)):
+                and plane[2] - body_top_mm(comp) < lift:
             # A chip tilted by θ pivots on its low end, so its middle stands (L/2)·sin θ
             # above the nominal top; a middle at the nominal top (less than half that) is
             # a level body whose measured slope is borrowed from solder piled at one end
@@ -1289,13 +1290,11 @@ def _body_turn(comp, loc: np.ndarray) -> float:
     import cv2
 
     (_, _), (w, h), angle = cv2.minAreaRect(np.asarray(loc, np.float32))
-    box = cv2.boxPoints(((0.0, 0.0), (w, h), angle))
-    edge = box[1] - box[0]
     size = sorted((comp.body_length_mm, comp.body_width_mm))
     if not all(abs(a - b) <= 0.2 * b for a, b in zip(sorted((w, h)), size)):
         return NAN
-    # the rectangle's edge direction, folded to within ±45° of the part's own axes
-    return float((math.degrees(math.atan2(edge[1], edge[0])) + 45.0) % 90.0 - 45.0)
+    # the rectangle's rotation, folded to within ±45° of the part's own axes
+    return float((angle + 45.0) % 90.0 - 45.0)
 
 
 def _runs_out(mask: np.ndarray, rows: np.ndarray, cols: np.ndarray,

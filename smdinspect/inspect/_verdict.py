@@ -216,16 +216,15 @@ def _misplaced(comp, offset: np.ndarray, slack=(0.0, 0.0), *, turn_deg: float = 
     t = math.radians(turn_deg) if math.isfinite(turn_deg) else 0.0
     turn = np.array([[math.cos(t) - 1.0, -math.sin(t)], [math.sin(t), math.cos(t) - 1.0]])
 
+    def shown(moved: np.ndarray, d: np.ndarray) -> float:
+        """Displacement ``moved`` along ``d`` less the slack along it (towards zero)."""
+        x = float(moved @ d)
+        s = abs(float(d @ ex)) * slack[0] + abs(float(d @ ey)) * slack[1]
+        return math.copysign(max(abs(x) - s, 0.0), x)
+
     for j in comp.joints:
         pad = np.asarray(j.polygon_mm, np.float64) - [comp.x_mm, comp.y_mm]
-        moved = offset + turn @ ((pad.min(0) + pad.max(0)) / 2.0)
-
-        def shown(d: np.ndarray) -> float:
-            """The joint's displacement along ``d`` less the slack along it (towards 0)."""
-            x = float(moved @ d)
-            s = abs(float(d @ ex)) * slack[0] + abs(float(d @ ey)) * slack[1]
-            return math.copysign(max(abs(x) - s, 0.0), x)
-
+        moved = offset + turn @ ((pad.min(0) + pad.max(0)) / 2.0)  # the joint's displacement
         out = np.asarray(j.outward, np.float64)
         out = out / max(float(np.hypot(*out)), 1e-12)
         acr = np.array([-out[1], out[0]])
@@ -234,7 +233,7 @@ def _misplaced(comp, offset: np.ndarray, slack=(0.0, 0.0), *, turn_deg: float = 
             term_w = float(comp.lead["width_mm"])
         else:
             term_w = float(np.ptp(centred_body @ acr))
-        side = abs(shown(acr)) - max(pad_w - term_w, 0.0) / 2
+        side = abs(shown(moved, acr)) - max(pad_w - term_w, 0.0) / 2
         frac = side / max(term_w, 1e-9)
         if frac > MAX_SIDE_OVERHANG and frac > worst_v:
             worst_v = frac
@@ -242,7 +241,7 @@ def _misplaced(comp, offset: np.ndarray, slack=(0.0, 0.0), *, turn_deg: float = 
                      f"hangs {frac:.0%} of its width over the pad's side (> "
                      f"{MAX_SIDE_OVERHANG:.0%}); body off by {float(offset @ acr):+.3f} mm "
                      f"across the pad" + (f", turned {turn_deg:+.1f} deg" if t else ""))
-        along = shown(out)
+        along = shown(moved, out)
         if comp.kind == "gullwing" and comp.lead:
             heel = float(comp.lead["span_mm"]) / 2 - float(comp.lead["foot_length_mm"])
             room_in = heel - float((pad @ out).min())          # heel to the pad's inner end
