@@ -21,6 +21,8 @@ quick check of the rules' logic, ~2 s per board).
     .venv/bin/python benchmarks/inspection.py --seeds test --boards 24 --mode sff --out bench/
     .venv/bin/python benchmarks/inspection.py --seeds tuning --first 8 --boards 20 --cache cache/
         # --cache: surfaces kept and reused, so a change to the verdict rules re-runs fast
+        # --out: also joints.csv, every joint's label, verdict and raw measurement (the
+        # numbers the rules read, e.g. a gull-wing's heel_reach_mm), to study a rule offline
 
 Counted: defects past their IPC-A-610 Class 2 limit (:data:`SEVERITY`) on parts wholly
 inside the image. *Recall*: called any defect; *right class*: called a verdict that names
@@ -35,6 +37,7 @@ from __future__ import annotations
 
 import argparse
 import csv
+import dataclasses
 import json
 import math
 import pickle
@@ -165,8 +168,42 @@ def run_case(name: str, seed: int, mode: str, tmp: Path, cache: Path | None = No
             "measured_max_mm": None if j is None or not math.isfinite(j.measured_max_mm)
             else round(j.measured_max_mm, 4),
             "gap_mm": None if j is None or j.gap_height_mm is None
-            or not math.isfinite(j.gap_height_mm) else round(j.gap_height_mm, 4)})
+            or not math.isfinite(j.gap_height_mm) else round(j.gap_height_mm, 4),
+            "measured": None if result is None
+            else raw_numbers(result.measurements.get(lab["id"]))})
     return out
+
+
+def raw_numbers(m) -> dict | None:
+    """The scalar fields of a joint's raw measurement (what the verdict rules read),
+    rounded; NaN as None."""
+    if m is None:
+        return None
+    out = {}
+    for f in dataclasses.fields(m):
+        v = getattr(m, f.name)
+        if isinstance(v, (bool, int, str)):
+            out[f.name] = v
+        elif isinstance(v, float):
+            out[f.name] = round(v, 5) if math.isfinite(v) else None
+    return out
+
+
+def joint_rows(cases: list[dict]) -> list[dict]:
+    """One row per joint of the located boards: the case, the label, the verdict and
+    the raw measurement (``measured.*`` columns), for studying a rule offline."""
+    rows = []
+    for c in cases:
+        for j in c["joints"]:
+            if not j.get("measured"):
+                continue
+            row = {"board": c["board"], "seed": c["seed"], "lens": c["lens"],
+                   "finish": c["finish"], "id": j["id"], "class": j["class"],
+                   "field": j["field"], "severity": json.dumps(j["severity"]),
+                   "true_height_mm": j["true_height_mm"], "verdict": j["verdict"]}
+            row.update({f"measured.{k}": v for k, v in j["measured"].items()})
+            rows.append(row)
+    return rows
 
 
 DEFECT_VERDICTS = set(CLASSES)
@@ -311,7 +348,8 @@ def main(argv=None) -> int:
     ap.add_argument("--boards", type=int, default=8, help="boards per board file")
     ap.add_argument("--board", choices=(*BOARDS, "both"), default="both")
     ap.add_argument("--mode", choices=("sff", "truth"), default="sff")
-    ap.add_argument("--out", type=Path, default=None, help="write cases.json, curves.csv, curves.png")
+    ap.add_argument("--out", type=Path, default=None, help="write cases.json, curves.csv, curves.png and joints.csv (every joint's "
+                         "label, verdict and raw measurement)")
     ap.add_argument("--list", action="store_true", help="print every miss and false call")
     ap.add_argument("--cache", type=Path, default=None,
                     help="keep each board's reconstructed surface here and reuse it on the next "
@@ -351,6 +389,12 @@ def main(argv=None) -> int:
             w.writeheader()
             w.writerows(rows)
         _plot(rows, args.out / "curves.png")
+        joints = joint_rows(cases)
+        if joints:
+            with (args.out / "joints.csv").open("w", newline="") as f:
+                w = csv.DictWriter(f, fieldnames=list(joints[0]))
+                w.writeheader()
+                w.writerows(joints)
     return 0
 
 

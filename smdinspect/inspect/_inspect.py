@@ -196,7 +196,7 @@ def _inspect_located(surface, board, reg: RegistrationResult, cfg: InspectConfig
         board=board.name, board_source=str(getattr(board, "source", "")), registration=reg,
         plane=plane, joints=joints, components=comps, config=cfg, pixel_size_mm=p,
         shape=(H, W), coverage=float(reliable.mean()), height_above_mm=level.astype(np.float32),
-        surface=surface,
+        surface=surface, measurements=jm,
         meta={"seconds": seconds, "step_mm": step, "board_size_mm": list(board.size_mm),
               "board_outline_px": _outline_px(board, reg, (H, W), p),
               # the rig calibration the surface was corrected with (--calibration)

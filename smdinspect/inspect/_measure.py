@@ -146,6 +146,7 @@ class JointMeasurement:
     foot_reliable_fraction: float = NAN
     foot_mm: float = NAN            # gull-wing: percentile over the foot
     heel_fit_n: int = 0             # gull-wing: reliable foot pixels the heel meniscus is fitted to
+    heel_reach_mm: float = NAN      # ... and how far along the foot the fitted meniscus runs
     side_mm: float = NAN            # gull-wing: percentile over the side region
     side_level_mm: float = NAN      # ... and its median (the solder level beside the foot)
     cap_mm: float = NAN             # chip: end-cap top above its nominal height
@@ -875,10 +876,12 @@ def _measure_gullwing(comp, joint, win: _Win, config: InspectConfig, level: floa
     # blurred edge); the percentile when too few foot pixels are reliable.
     on_foot, u_on_foot, heel_n = m.foot_mm, u_foot, 0
     if fr.sum() >= HEEL_FIT_MIN_PIXELS and np.isfinite(m.lead_mm):
+        heel_info: dict = {}
         hf_mm, u_hf = _heel_fillet(u[fr] - heel, win.h[fr], win.u[fr], m.lead_mm,
-                                   foot_length_mm=toe - heel, pixel_size_mm=p)
+                                   foot_length_mm=toe - heel, pixel_size_mm=p, info=heel_info)
         if np.isfinite(hf_mm):
             on_foot, u_on_foot, heel_n = hf_mm, u_hf, int(fr.sum())
+            m.heel_reach_mm = heel_info.get("reach_mm", NAN)
     # Solder that wets the heel wets the pad beside the foot too: a heel reading with the
     # side region at bare-pad level (below missing_height_mm) is the knee's blurred edge
     # on a dry foot, not a fillet (tuning boards 8-47: good joints' side percentile

@@ -161,6 +161,9 @@ class InspectionResult:
     height_above_mm: np.ndarray | None = field(default=None, repr=False)
     #: The measured surface (for the pictures of the report).
     surface: Any = field(default=None, repr=False)
+    #: The raw numbers the verdict rules read, per joint id
+    #: (:class:`~smdinspect.inspect._measure.JointMeasurement`; not in summary.json).
+    measurements: dict[str, Any] = field(default_factory=dict, repr=False)
     meta: dict[str, Any] = field(default_factory=dict)
 
     @property

@@ -52,6 +52,19 @@ def test_joint_heights_match_the_truth(inspected):
     assert all(j.volume_mm3 > 0 and j.area_mm2 > 0 for j in ok)
 
 
+def test_the_raw_measurements_behind_each_verdict_are_kept(inspected):
+    result, _ = inspected
+    assert set(result.measurements) == {j.id for j in result.joints}
+    for j in result.joints:
+        m = result.measurements[j.id]
+        # the verdict's method may add an "extrapolated" note to the measurement's own
+        assert m.joint_id == j.id and j.max_method.startswith(m.max_method.rstrip(")"))
+        assert np.isnan(j.measured_max_mm) or m.max_mm == pytest.approx(j.measured_max_mm)
+    # a gull-wing heel read from the meniscus on its foot says how far it runs
+    heels = [result.measurements[j.id] for j in result.joints if j.max_method == "foot"]
+    assert heels and all(0 < m.heel_reach_mm <= 1.0 for m in heels if m.heel_fit_n)
+
+
 def test_registration_is_reported(inspected):
     result, labels = inspected
     reg = result.registration
