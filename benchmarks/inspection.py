@@ -341,6 +341,15 @@ def _plot(rows: list[dict], path: Path) -> None:
     plt.close(fig)
 
 
+def _write_csv(path: Path, rows: list[dict]) -> None:
+    if not rows:
+        return
+    with path.open("w", newline="") as f:
+        w = csv.DictWriter(f, fieldnames=list(rows[0]))
+        w.writeheader()
+        w.writerows(rows)
+
+
 def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     ap.add_argument("--seeds", choices=("tuning", "test"), default="tuning")
@@ -348,8 +357,9 @@ def main(argv=None) -> int:
     ap.add_argument("--boards", type=int, default=8, help="boards per board file")
     ap.add_argument("--board", choices=(*BOARDS, "both"), default="both")
     ap.add_argument("--mode", choices=("sff", "truth"), default="sff")
-    ap.add_argument("--out", type=Path, default=None, help="write cases.json, curves.csv, curves.png and joints.csv (every joint's "
-                         "label, verdict and raw measurement)")
+    ap.add_argument("--out", type=Path, default=None,
+                    help="write cases.json, curves.csv, curves.png and joints.csv (every "
+                         "joint's label, verdict and raw measurement)")
     ap.add_argument("--list", action="store_true", help="print every miss and false call")
     ap.add_argument("--cache", type=Path, default=None,
                     help="keep each board's reconstructed surface here and reuse it on the next "
@@ -384,17 +394,9 @@ def main(argv=None) -> int:
     if args.out is not None:
         args.out.mkdir(parents=True, exist_ok=True)
         (args.out / "cases.json").write_text(json.dumps(cases, indent=1))
-        with (args.out / "curves.csv").open("w", newline="") as f:
-            w = csv.DictWriter(f, fieldnames=list(rows[0]))
-            w.writeheader()
-            w.writerows(rows)
+        _write_csv(args.out / "curves.csv", rows)
         _plot(rows, args.out / "curves.png")
-        joints = joint_rows(cases)
-        if joints:
-            with (args.out / "joints.csv").open("w", newline="") as f:
-                w = csv.DictWriter(f, fieldnames=list(joints[0]))
-                w.writeheader()
-                w.writerows(joints)
+        _write_csv(args.out / "joints.csv", joint_rows(cases))
     return 0
 
 
