@@ -168,6 +168,7 @@ class JointMeasurement:
     gap_sparse_neighbour: str = ""
     gap_blend_mm: float = NAN       # chip: a level path within the body edge's mixing reach
     gap_blend_neighbour: str = ""
+    gap_unread: str = ""            # a neighbour the gap to which is not read at all
     level_mm: float = 0.0           # local board level removed
     polygon_px: np.ndarray | None = field(default=None, repr=False)
 
@@ -959,6 +960,20 @@ def _record(joints, a: str, b: str, z: float, f: float, sparse: np.ndarray,
             m.gap_sparse_mm, m.gap_sparse_n, m.gap_sparse_neighbour = zs, int(sparse.size), other
 
 
+def _record_unread(joints, a: str, b: str, z: float, pooled: np.ndarray,
+                   open_share: float) -> None:
+    """Name each joint's neighbour when their gap (one side of it) lies open to view
+    (at least half of it inside the image and clear of the parts) and was still not
+    read: no path with a level (``z`` NaN) and fewer than
+    :data:`MIN_SPARSE_GAP_PIXELS` reliable pixels to pool — a web there (glint, steep
+    sides) is neither seen nor ruled out. A gap covered by a neighbouring part's
+    footprint or by the body itself is not free board, and is left as it is."""
+    if open_share < 0.5 or np.isfinite(z) or pooled.size >= MIN_SPARSE_GAP_PIXELS:
+        return
+    for jid, other in ((a, b), (b, a)):
+        joints[jid].gap_unread = joints[jid].gap_unread or other
+
+
 def _record_blend(joints, a: str, b: str, z: float) -> None:
     """Keep a level read where a body's edge blends into the heights (a possible web)."""
     if not np.isfinite(z):
@@ -1010,22 +1025,25 @@ def _measure_gaps(comp, win: _Win, config: InspectConfig, joints: dict[str, Join
             mixed |= _morph(body, mix / p, grow=True)
         for side in (-1.0, 1.0):
             ys = side * (hw + mg + np.arange(0.0, 0.1 + 1e-9, p))
-            z, f, sparse = _sample_paths(win, comp, xs, ys, body_grown, config)
-            _record(joints, a.id, b.id, z, f, np.empty(0), config)
+            z_out, f, sparse, open_share = _sample_paths(win, comp, xs, ys, body_grown, config)
+            _record(joints, a.id, b.id, z_out, f, np.empty(0), config)
             # the band next to the body (nominal edge to body_margin_mm), where a web
             # that wets the body's side stands; the side's sparse paths pooled
             ys = side * (hw + np.arange(0.0, mg - 1e-9, p))
             below = body_top_mm - LEVEL_PATH_BODY_GAP_MM
-            z, f, band = _sample_paths(win, comp, xs, ys, hug, config, level=True,
+            z, f, band, _ = _sample_paths(win, comp, xs, ys, hug, config, level=True,
                                        below_mm=below)
             if mixed.any():
                 # within the mixing reach of the body's edge a level may be that edge
                 # blended with the board: evidence of a possible web, not a measurement;
                 # only the band beyond the reach measures one
                 _record_blend(joints, a.id, b.id, z)
-                z, f, _ = _sample_paths(win, comp, xs, ys, hug | mixed, config, level=True,
-                                        below_mm=below)
-            _record(joints, a.id, b.id, z, f, np.concatenate([sparse, band]), config)
+                z, f, _, _ = _sample_paths(win, comp, xs, ys, hug | mixed, config,
+                                           level=True, below_mm=below)
+            pooled = np.concatenate([sparse, band])
+            _record(joints, a.id, b.id, z, f, pooled, config)
+            _record_unread(joints, a.id, b.id, z_out if np.isfinite(z_out) else z, pooled,
+                           open_share)
         return
     groups: dict[tuple[float, float], list] = {}
     for j in comp.joints:
@@ -1058,7 +1076,9 @@ def _measure_gaps(comp, win: _Win, config: InspectConfig, joints: dict[str, Join
             vs = np.arange(v0, v1 + 1e-9, p / 2)
             pts = (cc[None, None, :] + out_b[None, None, :] * us[:, None, None]
                    + acr_b[None, None, :] * vs[None, :, None])
-            _record(joints, a.id, b.id, *_sample_board(win, pts, body_grown, config), config)
+            z, f, sparse, open_share = _sample_board(win, pts, body_grown, config)
+            _record(joints, a.id, b.id, z, f, sparse, config)
+            _record_unread(joints, a.id, b.id, z, sparse, open_share)
 
 
 def _sample_paths(win: _Win, comp, xs, ys, exclude, config, **level):
@@ -1071,7 +1091,8 @@ def _sample_paths(win: _Win, comp, xs, ys, exclude, config, **level):
 def _sample_board(win: _Win, pts: np.ndarray, exclude: np.ndarray, config: InspectConfig,
                   **level):
     """Paths are the rows of the BOARD point grid ``pts`` (n_paths, n_along, 2);
-    ``level`` as in :func:`_path_level`."""
+    ``level`` as in :func:`_path_level`. Returns its three values and the share of the
+    grid open to be read (inside the image, not excluded)."""
     shp = pts.shape[:2]
     cr = win.ctx.board_to_px(pts.reshape(-1, 2)) - win.origin
     c = np.round(cr[:, 0]).astype(int)
@@ -1079,9 +1100,10 @@ def _sample_board(win: _Win, pts: np.ndarray, exclude: np.ndarray, config: Inspe
     H, W = win.shape
     inside = (c >= 0) & (c < W) & (r >= 0) & (r < H)
     c, r = np.clip(c, 0, W - 1), np.clip(r, 0, H - 1)
-    valid = (inside & win.rel[r, c] & ~exclude[r, c]).reshape(shp)
+    open_ = inside & ~exclude[r, c]
+    valid = (open_ & win.rel[r, c]).reshape(shp)
     h = np.where(valid, win.h[r, c].reshape(shp), np.nan)
-    return _path_level(h, valid, config, **level)
+    return (*_path_level(h, valid, config, **level), float(open_.mean()))
 
 
 # --------------------------------------------------------------------------------------

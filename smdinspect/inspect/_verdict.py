@@ -98,7 +98,8 @@ import math
 import numpy as np
 
 from ._config import InspectConfig, Verdict
-from ._measure import HEEL_FIT_MIN_PIXELS, ComponentMeasurement, JointMeasurement, under_lead
+from ._measure import (HEEL_FIT_MIN_PIXELS, MIN_SPARSE_GAP_PIXELS, ComponentMeasurement,
+                       JointMeasurement, under_lead)
 from ._reference import body_top_mm, lead_top_mm
 from ._result import ComponentResult, JointResult
 
@@ -304,6 +305,11 @@ def judge_joint(joint, comp, m: JointMeasurement, comp_result: ComponentResult,
         possible = _possible_bridge(m, _bridge_limit(comp, config), config)
         if v == Verdict.OK and possible:
             v, reason = Verdict.UNRELIABLE, f"possible bridge to {possible}; not judged ({reason})"
+        elif v == Verdict.OK and m.gap_unread:
+            v, reason = Verdict.UNRELIABLE, (
+                f"the gap to {m.gap_unread} is not measured (no path read, fewer than "
+                f"{MIN_SPARSE_GAP_PIXELS} reliable pixels): a bridge there is not ruled "
+                f"out; not judged ({reason})")
     method = m.max_method
     if _extrapolated(m, config):
         note = f"extrapolated, reach {m.fillet_reach:.0%}"

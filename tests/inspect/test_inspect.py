@@ -349,6 +349,33 @@ def test_a_level_band_within_the_window_reach_of_a_body_is_a_possible_bridge(win
             assert "focus window's reach" in got[jid].reason
 
 
+@pytest.mark.parametrize("unreliable_to_mm, verdict", [(0.45, Verdict.UNRELIABLE),
+                                                       (0.12, Verdict.OK)])
+def test_a_gap_not_measured_at_all_does_not_pass_a_joint(unreliable_to_mm, verdict):
+    """A web along a chip's side that is all glint leaves its gap with no reliable pixel
+    (test seed demo 10079 R2: a 75 µm web, 84 % of it clipped white, passed `ok`). With
+    the whole gap along one side unreliable, a bridge there is neither seen nor ruled
+    out: the joints are `unreliable`; with the gap's outer part measured (board level),
+    they pass."""
+    import dataclasses
+
+    board, off, shape = part_crop(DEMO, "R1")
+    s, labels, b = truth_surface(board, "", seed=3, offset_mm=off, shape=shape,
+                                 hole_fraction=0.0)
+    part = b.component("R1")
+    hw = part.body_width_mm / 2
+    inner = min(float(np.min(np.abs(part.to_local(j.polygon_mm)[:, 0]))) for j in part.joints)
+    band = part.to_board(np.array([[-inner, hw], [inner, hw], [inner, hw + unreliable_to_mm],
+                                   [-inner, hw + unreliable_to_mm]]))
+    rel = np.array(s.reliable) & ~placed_mask(s, labels, band)
+    got = {j.id: j for j in inspect_placed(dataclasses.replace(s, reliable=rel), b,
+                                           labels).joints}
+    for jid in ("R1.1", "R1.2"):
+        assert got[jid].verdict == verdict, (jid, got[jid].reason)
+        if verdict == Verdict.UNRELIABLE:
+            assert "gap to R1." in got[jid].reason and "not measured" in got[jid].reason
+
+
 def test_a_body_seen_at_one_end_only_is_placed_from_that_end():
     """A 1.0 x 0.5 mm body whose middle and left end are unmeasured: its blob spans
     0.1 .. 0.5 mm. Where the 3 px beyond its right end read board level, the body is
