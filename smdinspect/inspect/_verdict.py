@@ -88,7 +88,10 @@ Joint level
     paths each less than half reliable: a specular web is mostly unreliable) while
     ``bridge_min_fraction`` of the reliable pixels pooled over those paths (at least
     ``MIN_SPARSE_GAP_PIXELS``) stand above the bridge height: then ``unreliable``,
-    "possible bridge", never a silent pass.
+    "possible bridge", never a silent pass; or a gap open to view (at least half of it
+    in the image and clear of the parts) was not read at all (no path with a level and
+    fewer than ``MIN_SPARSE_GAP_PIXELS`` reliable pixels to pool): ``unreliable``, "the
+    gap … is not measured" — a web there is neither seen nor ruled out.
 """
 
 from __future__ import annotations
