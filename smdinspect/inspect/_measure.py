@@ -1042,8 +1042,7 @@ def _measure_gaps(comp, win: _Win, config: InspectConfig, joints: dict[str, Join
                                            level=True, below_mm=below)
             pooled = np.concatenate([sparse, band])
             _record(joints, a.id, b.id, z, f, pooled, config)
-            _record_unread(joints, a.id, b.id, z_out if np.isfinite(z_out) else z, pooled,
-                           open_share)
+            _record_unread(joints, a.id, b.id, np.fmax(z_out, z), pooled, open_share)
         return
     groups: dict[tuple[float, float], list] = {}
     for j in comp.joints:
@@ -1232,6 +1231,7 @@ def _measure_body(comp, ctx: MeasureContext, win: _Win, level: float,
         middle = (np.abs(win.lx) <= max(hl - t - 0.02, 0.25 * hl)) & \
             (np.abs(win.ly) <= hw - mg) & win.rel_all
         wb = blob[win.sl]
+        half_middle = max(hl - t - 0.05, 0.25 * hl)   # the middle's half-length, in a blob
         if wb.sum() >= 20:
             # The middle of the body where it really stands (a shifted or turned part),
             # from the blob's own extent along the part's axis.
@@ -1240,12 +1240,12 @@ def _measure_body(comp, ctx: MeasureContext, win: _Win, level: float,
             # more for a turned part.
             y0, y1 = np.percentile(win.ly[wb], [2, 98])
             yc = (y0 + y1) / 2
-            middle = wb & (np.abs(win.lx) <= max(hl - t - 0.05, 0.25 * hl)) & \
+            middle = wb & (np.abs(win.lx) <= half_middle) & \
                 (np.abs(win.ly - yc) <= max((y1 - y0) / 2 - mg, 0.25 * (y1 - y0) / 2)) & \
                 win.rel_all
-        tilt, n_tilt, plane, u2 = _body_tilt(win, middle, floor_mm=0.5 * body_top_mm(comp),
-                                             at_x_mm=hl - t / 2.0,
-                                             min_span_mm=max(hl - t - 0.05, 0.25 * hl))
+        floor = 0.5 * body_top_mm(comp)
+        tilt, n_tilt, plane, u2 = _body_tilt(win, middle, floor_mm=floor, at_x_mm=hl - t / 2.0,
+                                             min_span_mm=half_middle)
         lift = 0.25 * comp.body_length_mm * math.sin(math.radians(tilt))  # half of (L/2)·sin θ
         if plane is not None and tilt > config.tombstone_tilt_deg \
                 and plane[2] - body_top_mm(comp) < lift:
@@ -1258,7 +1258,7 @@ def _measure_body(comp, ctx: MeasureContext, win: _Win, level: float,
             # tombstones read over 8 deg on these and tuning boards 200-215 stand
             # 318-1274 µm above it).
             # The body is then level: its plane along the part is the middle's median.
-            sel = middle & (win.h > 0.5 * body_top_mm(comp))
+            sel = middle & (win.h > floor)
             plane = (0.0, plane[1], float(np.median(win.h[sel] - plane[1] * win.ly[sel])))
             tilt = 0.0
         # An upright part stands far above the nominal top over much of its footprint, or,
