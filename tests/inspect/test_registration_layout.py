@@ -10,7 +10,7 @@ from smdinspect.inspect._geometry import apply2d, rigid2d
 from smdinspect.sff import Surface
 from smdinspect.synth._board_scene import board_scene, random_board_case, scene_kwargs
 
-from ._synthetic import DEMO, DENSE, truth_surface
+from ._synthetic import DEMO, DENSE, placed_mask, truth_surface
 
 
 def _corner_error_mm(T, T_true, board):
@@ -296,9 +296,6 @@ def _caps_unmeasured(surface, labels, board):
     """The surface with every chip's metal end caps unreliable (clipped glints)."""
     import dataclasses
 
-    from smdinspect.inspect._geometry import polygon_mask, world_to_pixel
-
-    T = np.array(labels["placement"]["board_to_world"])
     reliable = surface.reliable.copy()
     for comp in board.components:
         if comp.kind != "chip":
@@ -306,10 +303,7 @@ def _caps_unmeasured(surface, labels, board):
         hl, hw, t = comp.body_length_mm / 2, comp.body_width_mm / 2, comp.termination_length_mm
         for a, b in ((hl - t, hl + 0.02), (-hl - 0.02, -hl + t)):
             box = np.array([[a, -hw - 0.02], [b, -hw - 0.02], [b, hw + 0.02], [a, hw + 0.02]])
-            world = apply2d(T, comp.to_board(box))
-            reliable &= ~polygon_mask(world_to_pixel(world, shape=reliable.shape,
-                                                     pixel_size_mm=surface.pixel_size_mm),
-                                      reliable.shape)
+            reliable &= ~placed_mask(surface, labels, comp.to_board(box))
     return dataclasses.replace(surface, reliable=reliable,
                                confidence=reliable.astype(np.float32))
 
