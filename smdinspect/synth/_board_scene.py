@@ -169,7 +169,9 @@ def board_scene(board: Board | str | os.PathLike, *, defects: Mapping[str, str] 
                 pixel_size_mm: float = 0.015, shape: tuple[int, int] | None = None,
                 offset_mm: tuple[float, float] | None = None, rotate_deg: float | None = None,
                 seed: int = 0, params: Mapping[str, Mapping[str, Any]] | None = None,
-                finish: str = "enig") -> tuple[Scene, dict[str, Any]]:
+                finish: str = "enig",
+                fillet_curvature: tuple[float, float] | None = None,
+                ) -> tuple[Scene, dict[str, Any]]:
     """Render a reference board into a scene, with defects, placed in the field of view.
 
     Parameters
@@ -203,6 +205,12 @@ def board_scene(board: Board | str | os.PathLike, *, defects: Mapping[str, str] 
         -1: which way across its pads).
     finish : str
         Pad finish, one of :data:`FINISHES` (``"enig"``, ``"hasl"``, ``"osp"``).
+    fillet_curvature : (lo, hi), optional
+        Chip fillets (good and insufficient ones) as constant-curvature menisci
+        (:func:`arc_fillet`, what surface tension makes), each with its curvature drawn
+        uniformly in [lo, hi] (0: a straight wedge, 1: the most curved arc meeting pad
+        and end face at contact angles of 0 or more). Default: the parabola
+        ``F·(1 − s)²``.
     pixel_size_mm : float
         Object-side pixel size, mm.
     shape : (H, W), optional
@@ -292,6 +300,21 @@ def board_scene(board: Board | str | os.PathLike, *, defects: Mapping[str, str] 
     cv = _Canvas((hh, ww), p, board, off, rot, seed)
     cv.finish = finish
     plan = _plan(board, defects, rng, params)
+    plan["arc"] = {}
+    if fillet_curvature is not None:
+        try:
+            k_lo, k_hi = (float(x) for x in fillet_curvature)
+        except (TypeError, ValueError):
+            raise InputError(f"fillet_curvature must be (lo, hi); got "
+                             f"{fillet_curvature!r}") from None
+        if not 0.0 <= k_lo <= k_hi <= 1.0:
+            raise InputError(f"fillet_curvature must satisfy 0 <= lo <= hi <= 1; got "
+                             f"{fillet_curvature!r}")
+        arc_rng = np.random.default_rng([int(seed), 0xA4C])  # the other draws stay as they were
+        for comp in board.components:
+            if comp.kind == "chip":
+                for j in comp.joints:
+                    plan["arc"][j.id] = float(arc_rng.uniform(k_lo, k_hi))
     cv.draw_board(plan)
     for comp in board.components:
         cv.draw_component(comp, plan)
@@ -302,7 +325,9 @@ def board_scene(board: Board | str | os.PathLike, *, defects: Mapping[str, str] 
                   pixel_size_mm=p, specular=np.clip(cv.spec, 0.0, 1.0), name=board.name,
                   meta={"generator": "board_scene", "board": board.name,
                         "board_file": board.source, "placement": labels["placement"],
-                        "defects": dict(defects), "seed": int(seed), "finish": finish})
+                        "defects": dict(defects), "seed": int(seed), "finish": finish,
+                        "fillet_curvature": (None if fillet_curvature is None
+                                             else [k_lo, k_hi])})
     return scene, labels
 
 
@@ -988,6 +1013,32 @@ def _fillet(s, F, convex: bool):
     return F * (1.0 - s) ** 2
 
 
+def arc_fillet(s, F: float, L: float, k: float) -> np.ndarray:
+    """Height of a concave fillet of constant curvature at ``s`` (0 at the termination's
+    end face, 1 at the toe, ``L`` mm away), rising to ``F`` at the face.
+
+    Molten solder at these sizes is shaped by surface tension alone (its capillary
+    length, about 2.6 mm, is ten times a chip fillet), so its free surface has constant
+    mean curvature: across a chip's fillet, a circular arc from the toe (L, 0) to the
+    face (0, F). ``k`` in [0, 1] is its curvature as a share of the largest one that
+    meets both the pad and the face at a contact angle of 0 or more (the arc tangent to
+    the pad when F < L, to the face when F > L): 0 is a straight wedge, 1 that most
+    curved arc.
+    """
+    s = np.clip(np.asarray(s, np.float64), 0.0, 1.0)
+    F, L, k = float(F), float(L), min(max(float(k), 0.0), 1.0)
+    if F <= 0.0 or L <= 0.0:
+        return np.zeros_like(s)
+    if k < 1e-6:
+        return F * (1.0 - s)
+    c2 = L * L + F * F
+    R = c2 / (2.0 * min(F, L)) / k
+    h = math.sqrt(max(R * R - c2 / 4.0, 0.0))
+    c = math.sqrt(c2)
+    cx, cz = L / 2.0 + F / c * h, F / 2.0 + L / c * h   # centre, over the free side
+    return np.clip(cz - np.sqrt(np.maximum(R * R - (s * L - cx) ** 2, 0.0)), 0.0, F)
+
+
 def _dome(w, q, extent, h):
     """Reflowed solder pillow over a pad: flat-topped, falling to 0 at the pad edge."""
     w0, w1, q0, q1 = extent
@@ -1039,7 +1090,8 @@ def _draw_chip(ctx: _Ctx) -> None:
         s_i = np.clip(((hl - t) - w) / 0.06, 0, None)
         s = np.sqrt(s_t ** 2 + s_q ** 2 + s_i ** 2)
         convex = cls == "excess"
-        z = _fillet(s, F, convex)
+        k = plan["arc"].get(j.id)
+        z = _fillet(s, F, convex) if convex or k is None else arc_fillet(s, F, d_toe, k)
         z = np.where(pad, np.maximum(z, _SOLDER_COAT), 0.0)
         if convex and ex.get("style", "cap") == "cap":
             # Solder over the end cap, rising to F at the end face.
@@ -1317,8 +1369,8 @@ def random_board_case(board: Board | str | os.PathLike, seed: int, *,
     whether the board has fiducials, the lighting (specular gain, shininess,
     ambient), the lens (one case in four ordinary, reconstructed with alignment), the
     placement, in one case in four an image that cuts into the board so parts
-    stand at or across the field edge, and the imaging (depth of field, in-focus blur,
-    sensor noise, flicker and stage wobble).
+    stand at or across the field edge, the imaging (depth of field, in-focus blur,
+    sensor noise, flicker and stage wobble) and the chip fillets' profile.
 
     Returns
     -------
@@ -1329,7 +1381,9 @@ def random_board_case(board: Board | str | os.PathLike, seed: int, *,
         :class:`~smdinspect.synth.Lighting`), ``lens`` ("telecentric" or "ordinary"),
         ``offset_mm``, ``rotate_deg``, ``shape`` (H, W), ``edge`` (bool), ``seed``,
         ``pixel_size_mm``, ``imaging`` (pupil scale, in-focus blur and sensor; render
-        with :func:`case_imaging`). Use :func:`board_scene` with ``**scene_kwargs(case)``.
+        with :func:`case_imaging`), ``fillet_curvature`` (chip fillets as circular arcs
+        with curvatures in that range, in three cases in four; None: the parabola). Use
+        :func:`board_scene` with ``**scene_kwargs(case)``.
     """
     import dataclasses
 
@@ -1426,11 +1480,18 @@ def random_board_case(board: Board | str | os.PathLike, seed: int, *,
                           "exposure": float(rng.uniform(0.55, 0.9)),
                           "flicker": float(rng.uniform(0.0, 0.03)),
                           "jitter_px": float(rng.uniform(0.0, 0.15))}}
+    # The chip fillets' profile, from its own stream (every draw above stays as it was):
+    # in three cases in four constant-curvature menisci, what surface tension makes
+    # (arc_fillet), each joint's curvature drawn between a shallow arc and the most
+    # curved one; else the parabola F·(1 − s)².
+    arc_rng = np.random.default_rng([int(seed), 0xF111E7])
+    fillet_curvature = ((float(arc_rng.uniform(0.3, 0.8)), 1.0)
+                        if arc_rng.random() < 0.75 else None)
     return {"board": board, "defects": defects, "params": params, "finish": finish,
             "fiducials": fiducials, "lighting": lighting, "lens": lens,
             "offset_mm": (float(off[0]), float(off[1])), "rotate_deg": rot,
             "shape": tuple(int(x) for x in shape), "edge": edge, "seed": int(seed),
-            "pixel_size_mm": p, "imaging": imaging}
+            "pixel_size_mm": p, "imaging": imaging, "fillet_curvature": fillet_curvature}
 
 
 def case_imaging(case: Mapping[str, Any]):
@@ -1451,4 +1512,4 @@ def case_imaging(case: Mapping[str, Any]):
 def scene_kwargs(case: Mapping[str, Any]) -> dict[str, Any]:
     """Keyword arguments of :func:`board_scene` for a :func:`random_board_case`."""
     return {k: case[k] for k in ("defects", "params", "finish", "offset_mm", "rotate_deg",
-                                 "shape", "seed", "pixel_size_mm")}
+                                 "shape", "seed", "pixel_size_mm", "fillet_curvature")}

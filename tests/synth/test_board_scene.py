@@ -366,3 +366,45 @@ def test_custom_geometry_polygon_pads_and_unknown_package():
     assert by_id["Q1.1"]["bridge_to"] == "Q1.2"
     top = _h_at(scene, lab, [4.4, 2.0])
     assert top == pytest.approx(0.9, abs=0.03)
+
+
+def test_arc_fillet_is_a_circular_arc_from_toe_to_end_face():
+    """The constant-curvature meniscus: through (L, 0) and (0, F), one radius everywhere,
+    a wedge at curvature 0, the quarter circle when F = L at curvature 1, never rising
+    above F or dipping below the pad."""
+    from smdinspect.synth._board_scene import arc_fillet
+
+    s = np.linspace(0.0, 1.0, 201)
+    np.testing.assert_allclose(arc_fillet(s, 0.3, 0.4, 0.0), 0.3 * (1 - s), atol=1e-12)
+    q = arc_fillet(s, 0.3, 0.3, 1.0)   # quarter circle of radius 0.3 centred on (L, F)
+    np.testing.assert_allclose(q, 0.3 - np.sqrt(0.3 ** 2 - (0.3 - s * 0.3) ** 2), atol=1e-9)
+    for F, L, k in ((0.2, 0.4, 1.0), (0.4, 0.2, 0.7), (0.3, 0.35, 0.4)):
+        z = arc_fillet(s, F, L, k)
+        assert z[0] == pytest.approx(F, abs=1e-9) and z[-1] == pytest.approx(0.0, abs=1e-9)
+        assert np.all(np.diff(z) <= 1e-12) and z.min() >= 0.0 and z.max() <= F + 1e-12
+        # one circle fits every point: algebraic circle fit x² + z² + a·x + b·z + c = 0
+        x = s * L
+        A = np.column_stack([x, z, np.ones_like(x)])
+        sol, *_ = np.linalg.lstsq(A, -(x ** 2 + z ** 2), rcond=None)
+        cx, cz = -sol[0] / 2, -sol[1] / 2
+        r = np.hypot(x - cx, z - cz)
+        assert np.ptp(r) < 1e-6 * r.mean()
+        assert r.mean() == pytest.approx((L * L + F * F) / (2 * min(F, L)) / k, rel=1e-6)
+        assert cz > z.max()   # the centre over the solder's free side: a concave meniscus
+
+
+def test_arc_fillets_keep_the_fillet_height_and_change_the_profile(demo, ok_scene):
+    scene0, lab0 = ok_scene
+    scene1, lab1 = board_scene(demo, fillet_curvature=(1.0, 1.0), **PLACE)
+    for jid in ("R1.1", "C1.2", "R3.2"):
+        # the label is the highest pixel: the arc, vertical at the face, has fallen a
+        # little by the pixel next to it (a 1206's 0.71 mm reads 0.69 at 30 µm/px)
+        F1 = _label(lab1, jid)["true_height_mm"]
+        assert F1 == pytest.approx(_label(lab0, jid)["true_height_mm"], rel=0.05)
+        vis = _visible_pad(demo, lab0, jid)
+        assert scene1.height_mm[vis].max() <= F1 + 1e-6
+        assert (np.abs(scene1.height_mm[vis] - scene0.height_mm[vis]) > 0.02).mean() > 0.2, jid
+    assert scene1.meta["fillet_curvature"] == [1.0, 1.0]
+    for bad in ((0.5, 1.5), (0.8, 0.2), "x"):
+        with pytest.raises(InputError, match="fillet_curvature"):
+            board_scene(demo, fillet_curvature=bad, **PLACE)
