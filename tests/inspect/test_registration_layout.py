@@ -213,6 +213,31 @@ def test_a_small_body_grown_by_edge_bleed_still_matches():
     assert _area_matches(r0805, 1.15 * L * W) and not _area_matches(r0805, 1.3 * L * W)
 
 
+def test_a_chip_middle_blob_lies_across_or_along_as_its_bleed_makes_it():
+    """A chip's middle between its caps is measured (L − 2t) along the part by its
+    width grown by the edge band on both sides (its sides bleed into the board, its
+    unmeasured caps do not): an 0402's (0.5 x 0.5 mm) reads long across the part (test
+    seed demo 10087 with arc fillets: 0.59 x 0.50 mm at 86° to the part; the board was
+    not located when that blob was taken to lie along it), an 0805's (1.2 x 1.25 mm)
+    square; a whole body's blob lies along the part."""
+    from smdinspect.inspect._features import _axis_turns_with, _Blob
+
+    board = load_board(DEMO)
+    c0402, r0805, r0603 = (next(c for c in board.components if c.ref == ref)
+                           for ref in ("C2", "R2", "R1"))
+    rot = 12.0
+    across = (c0402.rotation_deg + 90.0 + rot) % 180.0
+    assert _axis_turns_with(c0402, _Blob((0.0, 0.0), (0.59, 0.50), across + 3.0, 0.226), rot)
+    assert not _axis_turns_with(c0402, _Blob((0.0, 0.0), (0.59, 0.50), across + 90.0, 0.226),
+                                rot)
+    for ang in (0.0, 45.0, 90.0):   # a square middle: any direction
+        assert _axis_turns_with(r0805, _Blob((0.0, 0.0), (1.40, 1.20), ang, 1.31), rot)
+    along = (r0603.rotation_deg + rot) % 180.0
+    whole = (1.70, 0.92)
+    assert _axis_turns_with(r0603, _Blob((0.0, 0.0), whole, along + 4.0, 1.5), rot)
+    assert not _axis_turns_with(r0603, _Blob((0.0, 0.0), whole, along + 30.0, 1.5), rot)
+
+
 def test_a_far_body_is_kept_against_a_cluster_of_small_ones():
     """Body centroids through shape from focus carry 20-60 µm of bias (more through an
     ordinary lens). With the largest part missing, four small chips in one corner and a
