@@ -17,7 +17,8 @@ What is drawn (heights above the board top surface, z = 0):
 * gull-wing parts: black mould with drafted rim, pin-1 dimple and laser marking; tin
   leads with shoulder, knee and foot;
 * solder: concave meniscus fillets rising from the pad's outer edge to the chip end
-  (or to the lead heel, sides and toe), with a thin solder coat over the wetted pad,
+  (or to the lead heel, sides and toe) — parabolas, or for chips circular arcs of a
+  given curvature (``fillet_curvature``) —, with a thin solder coat over the wetted pad,
   a granular surface (albedo grain and 2.5 µm micro-relief) and high shininess.
 
 Defects (:data:`DEFECTS`) change the geometry; see :func:`board_scene`. Their severity
