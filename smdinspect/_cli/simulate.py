@@ -70,6 +70,11 @@ def register(sub: argparse._SubParsersAction) -> None:
                         "write negative values as --offset-mm=-1,0.5")
     g.add_argument("--rotate-deg", type=float, default=None,
                    help="board rotation (default: random within ±5°)")
+    g.add_argument("--fillet-curvature", default=None, metavar="LO,HI",
+                   help="chip fillets as circular arcs (constant curvature, what surface "
+                        "tension makes), each joint's curvature drawn in [LO, HI] (0: a "
+                        "straight wedge, 1: the most curved arc; e.g. 0.5,1); default: "
+                        "parabolic fillets")
     p.set_defaults(func=run)
 
 
@@ -97,7 +102,7 @@ def run(args: argparse.Namespace) -> int:
             raise InputError("--block-mm is only for 'simulate step'")
         _positive(args.block_mm, "--block-mm")
     if args.scene != "board":
-        for name in ("board", "offset_mm", "rotate_deg"):
+        for name in ("board", "offset_mm", "rotate_deg", "fillet_curvature"):
             if getattr(args, name) is not None:
                 raise InputError(f"--{name.replace('_', '-')} is only for 'simulate board'")
         if args.defects:
@@ -206,7 +211,9 @@ def _board_scene(args: argparse.Namespace):
     shape = None if args.size is None else (args.size, args.size)
     scene, labels = board_scene(board, defects=defects, pixel_size_mm=args.pixel_size_mm,
                                 shape=shape, offset_mm=offset, rotate_deg=args.rotate_deg,
-                                seed=args.seed)
+                                seed=args.seed,
+                                fillet_curvature=_pair(args.fillet_curvature,
+                                                       "--fillet-curvature"))
     outside = [j["id"] for j in labels["joints"] if not j.get("in_view", True)]
     if outside:
         h, w = scene.shape

@@ -52,6 +52,7 @@ def test_simulate_refuses_a_non_empty_out(tmp_path, capsys):
     (["--step-mm", "-0.1"], "--step-mm must be > 0"),
     (["--defects", "R1.1:bridge"], "--defects is only for 'simulate board'"),
     (["--frames", "2"], "--frames must be >= 3"),
+    (["--fillet-curvature", "0.5,1"], "--fillet-curvature is only for 'simulate board'"),
 ])
 def test_simulate_bad_arguments(tmp_path, capsys, argv, message):
     rc = main(["-q", "simulate", "cone", "--out", str(tmp_path / "c"), "--size", "32", *argv])
@@ -102,6 +103,30 @@ def test_simulate_board_writes_labels(tmp_path):
     assert stack.z_mm[0] < min(0.0, h.min()) and stack.z_mm[-1] > h.max()
     scene_doc = json.loads((out / "truth" / "scene.json").read_text())
     assert scene_doc["labels"] == "labels.json"
+
+
+def test_simulate_board_with_arc_fillets(tmp_path, capsys):
+    """--fillet-curvature renders the chip fillets as arcs: the same board and seed
+    keep their fillet heights but change the fillets' profile; a bad range is one line
+    and exit 2, with nothing written."""
+    args = ["-q", "simulate", "board", "--board", DEMO, "--seed", "7", "--pixel-size-mm",
+            "0.05", "--step-mm", "0.25", "--offset-mm", "0,0", "--rotate-deg", "0"]
+    assert main(args + ["--out", str(tmp_path / "p")]) == 0
+    assert main(args + ["--out", str(tmp_path / "a"), "--fillet-curvature", "1,1"]) == 0
+    lab = {n: {j["id"]: j for j in json.loads((tmp_path / n / "truth" / "labels.json")
+                                               .read_text())["joints"]} for n in "pa"}
+    h = {n: np.load(tmp_path / n / "truth" / "height_mm.npy") for n in "pa"}
+    for jid in ("R2.1", "C1.2"):
+        # the label is the highest pixel: at 50 µm/px the arc, vertical at the end face,
+        # has fallen by the pixel next to it (R2.1: 0.23 against the parabola's 0.28 mm)
+        assert 0.75 < lab["a"][jid]["true_height_mm"] / lab["p"][jid]["true_height_mm"] <= 1.0
+    assert np.abs(h["a"] - h["p"]).max() > 0.05
+    capsys.readouterr()
+    rc = main(args + ["--out", str(tmp_path / "x"), "--fillet-curvature", "0.5,2"])
+    err = capsys.readouterr().err
+    assert rc == 2 and "fillet_curvature must satisfy 0 <= lo <= hi <= 1" in err
+    assert len(err.strip().splitlines()) == 1
+    assert not (tmp_path / "x").exists()
 
 
 def test_simulate_board_rejects_unknown_joint(tmp_path, capsys):
