@@ -101,3 +101,30 @@ def rect_polygon(cx: float, cy: float, length: float, width: float, angle_deg: f
         [cx + hl * ux + hw * vx, cy + hl * uy + hw * vy],
         [cx - hl * ux + hw * vx, cy - hl * uy + hw * vy],
     ])
+
+
+def arc_fillet(s, F: float, L: float, k: float) -> np.ndarray:
+    """Height of a concave fillet of constant curvature at ``s`` (0 at the termination's
+    end face, 1 at the toe, ``L`` mm away), rising to ``F`` at the face.
+
+    Molten solder at these sizes is shaped by surface tension alone (its capillary
+    length, about 2.6 mm, is ten times a chip fillet), so its free surface has constant
+    mean curvature: across a chip's fillet, a circular arc from the toe (L, 0) to the
+    face (0, F). ``k`` in [0, 1] is its curvature as a share of the largest one that
+    meets both the pad and the face at a contact angle of 0 or more (the arc tangent to
+    the pad when F < L, to the face when F > L): 0 is a straight wedge, 1 that most
+    curved arc.
+    """
+    s = np.clip(np.asarray(s, np.float64), 0.0, 1.0)
+    F, L, k = float(F), float(L), min(max(float(k), 0.0), 1.0)
+    if F <= 0.0 or L <= 0.0:
+        return np.zeros_like(s)
+    if k < 1e-6:
+        return F * (1.0 - s)
+    c2 = L * L + F * F
+    R = c2 / (2.0 * min(F, L)) / k
+    h = math.sqrt(max(R * R - c2 / 4.0, 0.0))
+    c = math.sqrt(c2)
+    cx, cz = L / 2.0 + F / c * h, F / 2.0 + L / c * h   # centre, over the free side
+    return np.clip(cz - np.sqrt(np.maximum(R * R - (s * L - cx) ** 2, 0.0)), 0.0, F)
+

@@ -59,7 +59,9 @@ Joint level
    gull-wing heel fitted to enough reliable foot pixels, with its side region measured,
    is judged on that fit from half the fraction on (:func:`_judged_on_heel_fit`).
 10. ``missing`` without a colour cue: the max height is below ``missing_height_mm``.
-11. ``insufficient``: below the joint's ``min_height_mm``.
+11. ``insufficient``: below the joint's ``min_height_mm`` — but ``unreliable`` for a chip
+    meniscus at or above ``min_reads_mm``, what a fillet exactly at the minimum reads
+    through the fit when it is the most curved arc solder can take (the shape alone).
 12. ``excess``: above the joint's ``max_height_mm``; a chip meniscus capped at the end
     cap's measured top above it is ``unreliable`` instead (the fit overshot; the cap's
     own reading, not solder, stands above the band: solder over the cap is rule 5's).
@@ -526,6 +528,14 @@ def _joint_rule(joint, comp, m: JointMeasurement, comp_result: ComponentResult,
     if h < joint.min_height_mm and not math.isfinite(m.bare_fraction) \
             and h < config.missing_height_mm:
         return Verdict.MISSING, f"no solder: max height {_um(h)}{pm}{how} < {_um(config.missing_height_mm)}"
+    if h < joint.min_height_mm and m.max_method == "meniscus" and h >= m.min_reads_mm:
+        # A fillet exactly at the minimum, shaped as the most curved meniscus solder can
+        # take, reads this low through the concave fit: the shape alone could be the
+        # shortfall.
+        return Verdict.UNRELIABLE, (f"max solder height {_um(h)}{pm}{how} < min "
+                                    f"{_um(joint.min_height_mm)}, but a fillet at the minimum "
+                                    f"whose meniscus is the most curved arc reads "
+                                    f"{_um(m.min_reads_mm)} through this fit; not judged")
     if h < joint.min_height_mm:
         return Verdict.INSUFFICIENT, f"max solder height {_um(h)}{pm}{how} < min {_um(joint.min_height_mm)}"
     if h > joint.max_height_mm:

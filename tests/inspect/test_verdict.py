@@ -61,6 +61,42 @@ def test_meniscus_reaching_its_top_is_judged(c2):
     assert r.verdict is Verdict.OK and "extrapolated" in r.reason and "15%" in r.reason
 
 
+def test_a_reading_the_fillet_shape_alone_could_give_is_not_insufficient(c2):
+    """Solder fillets are arcs (surface tension); the parabola reads an arc lower the
+    more it is curved. A fillet exactly at the minimum, shaped as the most curved arc,
+    reads ``min_reads_mm``: a reading between that and the minimum is not judged, one
+    below it is insufficient."""
+    joint = c2[0]
+    mn = joint.min_height_mm
+    floor = 0.9 * mn
+    r = _judge(c2, max_mm=mn - 0.005, max_method="meniscus", fillet_reach=0.55,
+               observed_mm=mn - 0.05, min_reads_mm=floor)
+    assert r.verdict is Verdict.UNRELIABLE and "most curved arc" in r.reason
+    r = _judge(c2, max_mm=floor - 0.005, max_method="meniscus", fillet_reach=0.55,
+               observed_mm=mn - 0.05, min_reads_mm=floor)
+    assert r.verdict is Verdict.INSUFFICIENT
+    # a percentile, not a fitted shape, has no such allowance
+    r = _judge(c2, max_mm=mn - 0.005, max_method="percentile", observed_mm=mn - 0.005,
+               min_reads_mm=floor)
+    assert r.verdict is Verdict.INSUFFICIENT
+
+
+def test_the_shape_floor_is_the_most_curved_arcs_reading():
+    """The floor is what the meniscus fit reads on the most curved physical arc at the
+    minimum, over the pixels seen: the lowest over every curvature, 0.72 of F on an 0402's
+    pad and 0.93 on an 0603's, seen from the body margin out."""
+    from smdinspect.inspect._geometry import arc_fillet
+    from smdinspect.inspect._measure import _meniscus, _shape_floor
+
+    for L, F, expect in ((0.22, 0.155, 0.72), (0.38, 0.142, 0.925)):
+        d = np.linspace(0.08, L, 120)
+        floor = _shape_floor(d, L, F)
+        assert floor / F == pytest.approx(expect, abs=0.01)
+        for k in (0.0, 0.4, 0.8):
+            z = arc_fillet(d / L, F, L, k)
+            assert _meniscus(d, L, z, np.full_like(d, 0.001))[0] > floor
+
+
 def test_meniscus_extrapolated_below_or_above_the_band_is_unreliable(c2):
     joint = c2[0]
     low = joint.min_height_mm - 0.03

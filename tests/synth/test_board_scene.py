@@ -372,7 +372,7 @@ def test_arc_fillet_is_a_circular_arc_from_toe_to_end_face():
     """The constant-curvature meniscus: through (L, 0) and (0, F), one radius everywhere,
     a wedge at curvature 0, the quarter circle when F = L at curvature 1, never rising
     above F or dipping below the pad."""
-    from smdinspect.synth._board_scene import arc_fillet
+    from smdinspect.inspect._geometry import arc_fillet
 
     s = np.linspace(0.0, 1.0, 201)
     np.testing.assert_allclose(arc_fillet(s, 0.3, 0.4, 0.0), 0.3 * (1 - s), atol=1e-12)
