@@ -643,7 +643,8 @@ def _shape_floor(d: np.ndarray, length: float, F: float) -> float:
     (:func:`arc_fillet`, curvature 1: tangent to the pad, or to the face when F > L).
     Solder's fillets are arcs (surface tension), and the parabola reads an arc lower the
     more it is curved, so this is the lowest reading of a fillet exactly at ``F`` from
-    its shape alone (0.72-0.82 of F on the boards' pads, every pixel seen)."""
+    its shape alone (at the band minimum, seen from the body margin out: 0.72 of F on an
+    0402's pad, 0.74 on a 1206's, 0.93-0.94 on 0603 and 0805 pads)."""
     g = np.clip(1.0 - d / length, 0.0, 1.0) ** 2
     den = float(np.sum(g * g))
     if den <= 1e-12 or not F > 0:
