@@ -502,9 +502,10 @@ def _blob_matches(comp, blob: _Blob) -> bool:
     return bool(_matched_shapes(comp, blob))
 
 
-def _axis_turns_with(comp, blob: _Blob, rot_deg: float) -> bool:
-    """Whether the blob's long side lies along the matched shape's long side under a
-    placement turned ``rot_deg`` (a blob or shape within 15 % of square says nothing).
+def _axis_turns_with(comp, blob: _Blob, rot_deg: float, shapes=None) -> bool:
+    """Whether the blob's long side lies along the long side of a shape it matches
+    (``shapes``, by default :func:`_matched_shapes`) under a placement turned
+    ``rot_deg`` (a blob or shape within 15 % of square says nothing).
 
     A chip's middle between its caps is measured as (L − 2t) along the part by the
     width grown by the edge band on each side: its sides bleed into the board while its
@@ -514,7 +515,7 @@ def _axis_turns_with(comp, blob: _Blob, rot_deg: float) -> bool:
     if blob.sides[0] <= 1.15 * blob.sides[1]:
         return True
     whole = (comp.body_length_mm, comp.body_width_mm)
-    for L, Wd in _matched_shapes(comp, blob):
+    for L, Wd in (_matched_shapes(comp, blob) if shapes is None else shapes):
         if (L, Wd) != whole:
             Wd += 2 * BLOB_EDGE_MM
         if max(L, Wd) <= 1.15 * min(L, Wd):
@@ -557,16 +558,17 @@ def global_body_pose(height, reliable, board, p, *, T_nominal: np.ndarray,
     comps = list(board.components)
     levels = sorted({round(presence_threshold_mm(c), 4) for c in comps})
     blobs_at = {lv: _measured_blobs(height, reliable, lv, p) for lv in levels}
-    cand: list[tuple[int, _Blob]] = []
+    cand: list[tuple[int, _Blob, list]] = []   # (body, blob, the body's shapes it matches)
     for ci, c in enumerate(comps):
         for b in blobs_at[round(presence_threshold_mm(c), 4)]:
-            if _blob_matches(c, b):
-                cand.append((ci, b))
+            shapes = _matched_shapes(c, b)
+            if shapes:
+                cand.append((ci, b, shapes))
     if len(cand) < 2:
         return None, {"reason": f"{len(cand)} body-sized blobs", "hypotheses": 0}
-    src = np.array([[comps[ci].x_mm, comps[ci].y_mm] for ci, _ in cand])
-    dst = np.array([b.xy for _, b in cand])
-    cidx = np.array([ci for ci, _ in cand])
+    src = np.array([[comps[ci].x_mm, comps[ci].y_mm] for ci, _, _ in cand])
+    dst = np.array([b.xy for _, b, _ in cand])
+    cidx = np.array([ci for ci, _, _ in cand])
     rot0 = math.degrees(math.atan2(T_nominal[1, 0], T_nominal[0, 0]))
     centre = np.array(board.size_mm, np.float64) / 2.0
     c_nom = apply2d(T_nominal, centre[None])[0]
@@ -608,7 +610,8 @@ def global_body_pose(height, reliable, board, p, *, T_nominal: np.ndarray,
             if float(np.hypot(*(apply2d(T, centre[None])[0] - c_nom))) > max_offset_mm + BODY_SEARCH_MM:
                 continue
             # The blobs' long axes must turn with the placement (square shapes say nothing).
-            if all(_axis_turns_with(comps[cidx[k]], cand[k][1], rot) for k in (i, j)):
+            if all(_axis_turns_with(comps[cidx[k]], cand[k][1], rot, cand[k][2])
+                   for k in (i, j)):
                 n_hyp += 1
                 s = support(T)
                 scored.append((s[0], T, s[2]))
@@ -616,9 +619,13 @@ def global_body_pose(height, reliable, board, p, *, T_nominal: np.ndarray,
                     best, best_T = s, T
     if best_T is None or best[0] < 2:
         return None, {"reason": "no two bodies agree", "hypotheses": n_hyp}
+    def fit(idx) -> tuple[np.ndarray, float]:
+        """Rigid placement of the matches ``idx`` and its RMS residual (mm)."""
+        Ti = fit_rigid2d(src[idx], dst[idx])
+        return Ti, float(np.sqrt(np.mean(np.sum((apply2d(Ti, src[idx]) - dst[idx]) ** 2, 1))))
+
     keep = best[2]
-    T = fit_rigid2d(src[keep], dst[keep])
-    res = np.hypot(*(apply2d(T, src[keep]) - dst[keep]).T)
+    T, rms = fit(keep)
     # The best support of a rival placement: one that pairs a body of the best with
     # another blob (or a blob of the best with another body), or whose matches and the
     # best's together do not fit one placement within tol_mm RMS. A layout with
@@ -634,12 +641,9 @@ def global_body_pose(height, reliable, board, p, *, T_nominal: np.ndarray,
         pairs = {int(cidx[k]): dst[k].tobytes() for k in matches}
         if any(mine.get(c, b) != b or mine_blobs.get(b, c) != c for c, b in pairs.items()):
             return True
-        union = sorted(set(keep) | set(matches))
-        Tu = fit_rigid2d(src[union], dst[union])
-        rms = float(np.sqrt(np.mean(np.sum((apply2d(Tu, src[union]) - dst[union]) ** 2, 1))))
-        return rms > tol_mm
+        return fit(sorted(set(keep) | set(matches)))[1] > tol_mm
 
     rival = max((n for n, _, matches in scored if rivals(matches)), default=0)
     return T, {"support": sorted(comps[cidx[k]].ref for k in keep), "hypotheses": n_hyp,
                "rival_support": int(rival),
-               "rms_mm": round(float(np.sqrt(np.mean(res ** 2))), 5)}
+               "rms_mm": round(rms, 5)}

@@ -598,6 +598,11 @@ def _propagated_u(g: np.ndarray, u: np.ndarray) -> float:
     return float(np.sqrt(np.nansum(g ** 2 * u ** 2)) / np.sum(g ** 2))
 
 
+def _meniscus_shape(d: np.ndarray, length: float) -> np.ndarray:
+    """The meniscus model's shape, ``(1 − d/length)²`` (0 beyond the toe): z = F · this."""
+    return np.clip(1.0 - d / length, 0.0, 1.0) ** 2
+
+
 def _meniscus(d: np.ndarray, length: float, z: np.ndarray, uz: np.ndarray,
               info: dict | None = None) -> tuple[float, float]:
     """Fit ``z = F·(1 − d/length)²`` (robust, 3-MAD trimming); returns (F, uncertainty).
@@ -605,7 +610,7 @@ def _meniscus(d: np.ndarray, length: float, z: np.ndarray, uz: np.ndarray,
     The uncertainty combines the fit's standard error with the per-pixel uncertainties
     propagated through the fit, ``√Σ(g²u²) / Σg²``.
     """
-    g = np.clip(1.0 - d / length, 0.0, 1.0) ** 2
+    g = _meniscus_shape(d, length)
     keep = np.ones(len(z), bool)
     F = se = NAN
     for _ in range(3):
@@ -645,7 +650,7 @@ def _shape_floor(d: np.ndarray, length: float, F: float) -> float:
     more it is curved, so this is the lowest reading of a fillet exactly at ``F`` from
     its shape alone (at the band minimum, seen from the body margin out: 0.72 of F on an
     0402's pad, 0.74 on a 1206's, 0.93-0.94 on 0603 and 0805 pads)."""
-    g = np.clip(1.0 - d / length, 0.0, 1.0) ** 2
+    g = _meniscus_shape(d, length)
     den = float(np.sum(g * g))
     if den <= 1e-12 or not F > 0:
         return NAN
