@@ -147,6 +147,7 @@ class JointMeasurement:
     foot_mm: float = NAN            # gull-wing: percentile over the foot
     heel_fit_n: int = 0             # gull-wing: reliable foot pixels the heel meniscus is fitted to
     heel_reach_mm: float = NAN      # ... and how far along the foot the fitted meniscus runs
+    heel_far_mm: float = NAN        # ... the same fit over the foot beyond the knee's mixing reach
     side_mm: float = NAN            # gull-wing: percentile over the side region
     side_level_mm: float = NAN      # ... and its median (the solder level beside the foot)
     cap_mm: float = NAN             # chip: end-cap top above its nominal height
@@ -742,10 +743,10 @@ HEEL_FIT_MIN_PIXELS = 20
 
 
 def _heel_fit(x: np.ndarray, y: np.ndarray, clip2: float, foot_length_mm: float,
-              p: float):
+              p: float, min_reach_mm: float = 0.0):
     """Best (loss, reach, A, g, keep) of ``y = A·(1 − x/ℓ)²`` over the reach grid."""
     best = None
-    for reach in np.arange(2 * p, foot_length_mm + 1e-9, p / 2):
+    for reach in np.arange(max(2 * p, min_reach_mm), foot_length_mm + 1e-9, p / 2):
         g = np.clip(1.0 - x / reach, 0.0, None) ** 2
         inside = g > 0
         if inside.sum() < 5:
@@ -772,7 +773,7 @@ def _heel_fit(x: np.ndarray, y: np.ndarray, clip2: float, foot_length_mm: float,
 
 
 def _heel_fillet(x: np.ndarray, z: np.ndarray, uz: np.ndarray, lead_mm: float, *,
-                 foot_length_mm: float, pixel_size_mm: float,
+                 foot_length_mm: float, pixel_size_mm: float, min_reach_mm: float = 0.0,
                  info: dict | None = None) -> tuple[float, float]:
     """Heel fillet height at the heel from the foot's reliable pixels (see module doc).
 
@@ -780,7 +781,8 @@ def _heel_fillet(x: np.ndarray, z: np.ndarray, uz: np.ndarray, lead_mm: float, *
     the foot as a concave meniscus, ``z = lead + A·(1 − x/ℓ)²`` for ``x < ℓ``, the
     lead's own top beyond (x: distance from the heel along the foot, mm). For every
     reach ℓ on a grid (half-pixel steps from 2 pixels to the foot's length) A is the
-    least-squares value over the pixels within ``c`` of the model, and the ℓ with the
+    least-squares value over the pixels within ``c`` of the model (ℓ from
+    ``min_reach_mm`` when that is longer), and the ℓ with the
     smallest clipped loss ``Σ min(r², c²)`` wins (a redescending M-estimate: a stray
     pixel costs at most c²). ``c = 4 s``: first s is the robust scatter of the foot's
     far half about the lead top, then the robust scatter of the first fit's residuals.
@@ -793,12 +795,12 @@ def _heel_fillet(x: np.ndarray, z: np.ndarray, uz: np.ndarray, lead_mm: float, *
     flat = x >= 0.5 * foot_length_mm
     ref = y[flat] if flat.sum() >= 3 else y
     s0 = max(1.4826 * float(np.median(np.abs(ref - np.median(ref)))), 1e-4)
-    best = _heel_fit(x, y, (4.0 * s0) ** 2, foot_length_mm, p)
+    best = _heel_fit(x, y, (4.0 * s0) ** 2, foot_length_mm, p, min_reach_mm)
     if best is None:
         return NAN, NAN
     r = y - best[2] * best[3]
     s1 = max(1.4826 * float(np.median(np.abs(r))), s0)
-    best = _heel_fit(x, y, (4.0 * s1) ** 2, foot_length_mm, p) or best
+    best = _heel_fit(x, y, (4.0 * s1) ** 2, foot_length_mm, p, min_reach_mm) or best
     _, reach, A, g, keep = best
     gk, rk = g[keep], (y - A * g)[keep]
     den = float(np.sum(gk * gk))
@@ -809,6 +811,32 @@ def _heel_fillet(x: np.ndarray, z: np.ndarray, uz: np.ndarray, lead_mm: float, *
     if info is not None:
         info.update(reach_mm=reach, n=int(keep.sum()))
     return lead_mm + A, _hypot(se, uf, u_lead)
+
+
+def _heel_beyond_knee(x: np.ndarray, z: np.ndarray, uz: np.ndarray, lead_mm: float, *,
+                      foot_length_mm: float, pixel_size_mm: float, mixing_mm: float) -> float:
+    """The heel fillet's top as the foot beyond the knee's mixing reach tells it.
+
+    The knee rises from the heel to the mould's exit, several times the lead's height;
+    within :attr:`MeasureContext.mixing_mm` of the heel every focus window holds the
+    knee's edge, so those pixels read a blend rising towards the heel whether solder
+    wets it or not (a dry heel reads like a meniscus some 0.1 mm long). A heel fillet
+    high enough to count wets the lead further out: the meniscus fitted to the foot's
+    pixels beyond that reach alone, extrapolated to the heel, still stands above the
+    lead. The fitted reach is at least twice the mixing reach (as much meniscus seen as
+    hidden): a meniscus ending just past the blend would extrapolate a pixel's noise
+    tenfold. NaN when too few pixels lie beyond it, or when they put the solder clearly
+    below the lead's own top (no evidence either way)."""
+    x = np.asarray(x, np.float64)
+    far = x >= mixing_mm
+    if mixing_mm <= 0 or far.sum() < HEEL_FIT_MIN_PIXELS:
+        return NAN
+    top, _ = _heel_fillet(x[far], np.asarray(z)[far], np.asarray(uz)[far], lead_mm,
+                          foot_length_mm=foot_length_mm, pixel_size_mm=pixel_size_mm,
+                          min_reach_mm=2.0 * mixing_mm)
+    # solder standing clearly below the lead's own top is no meniscus on it: the far
+    # pixels are not the foot (an unmeasured or glinting foot), no evidence
+    return top if top >= lead_mm - 0.02 else NAN
 
 
 def _seen_next_to_lead(side: np.ndarray, rel: np.ndarray, across: np.ndarray,
@@ -906,6 +934,9 @@ def _measure_gullwing(comp, joint, win: _Win, config: InspectConfig, level: floa
         if np.isfinite(hf_mm):
             on_foot, u_on_foot, heel_n = hf_mm, u_hf, int(fr.sum())
             m.heel_reach_mm = heel_info.get("reach_mm", NAN)
+            m.heel_far_mm = _heel_beyond_knee(u[fr] - heel, win.h[fr], win.u[fr], m.lead_mm,
+                                              foot_length_mm=toe - heel, pixel_size_mm=p,
+                                              mixing_mm=win.ctx.mixing_mm)
     # Solder that wets the heel wets the pad beside the foot too: a heel reading with the
     # side region at bare-pad level (below missing_height_mm) is the knee's blurred edge
     # on a dry foot, not a fillet (tuning boards 8-47: good joints' side percentile
@@ -916,7 +947,11 @@ def _measure_gullwing(comp, joint, win: _Win, config: InspectConfig, level: floa
     # unreliable, so a strip measured only at its outer edge reads low on a good joint.
     side_bare = (np.isfinite(m.side_mm) and m.side_mm < config.missing_height_mm
                  and _seen_next_to_lead(side, win.rel, np.abs(v), b2))
-    if np.isfinite(on_foot) and on_foot > g_t + 0.02 and not raised_lead and not side_bare:
+    # A heel reading the foot beyond the knee's mixing reach does not bear out is the
+    # knee's edge blended into the foot (a dry heel), not solder.
+    knee_blend = np.isfinite(m.heel_far_mm) and m.heel_far_mm <= g_t + 0.02
+    if (np.isfinite(on_foot) and on_foot > g_t + 0.02 and not raised_lead and not side_bare
+            and not knee_blend):
         m.max_mm, m.u_max_mm, m.max_method = on_foot, _hypot(u_on_foot, u_level), "foot"
         m.heel_fit_n = heel_n
     elif np.isfinite(side_f):

@@ -20,6 +20,7 @@ import pytest
 from smdinspect.inspect import InspectConfig, load_board
 from smdinspect.inspect._measure import (
     MeasureContext,
+    _heel_beyond_knee,
     _heel_fillet,
     footprints,
     measure_board,
@@ -178,3 +179,36 @@ def test_heel_fillet_flat_foot_and_buried_foot():
     h, u = _heel_fillet(np.array([0.0, 0.02]), np.array([0.3, 0.3]), np.array([1e-3, 1e-3]),
                         0.23, foot_length_mm=0.84, pixel_size_mm=P_MM)
     assert math.isnan(h) and math.isnan(u)
+
+
+def test_the_knees_blend_on_a_dry_heel_is_not_borne_out_beyond_its_reach():
+    """Shape from focus blends the knee's edge into the foot's first pixels (half the
+    focus window and a bit: ``mixing_mm``): on a dry heel they rise like a meniscus
+    ~0.1 mm long, which the fit along the whole foot reads as a heel fillet. Beyond the
+    mixing reach the foot stays at the lead's top: the fit there does not bear it out.
+    A real heel fillet (reach 0.3 mm) is borne out within a few µm."""
+    rng = np.random.default_rng(21)
+    mixing = 0.09  # (5 // 2 + 2) px at 20 µm/px
+    blends, fillets = [], []
+    for _ in range(10):
+        x, z = _foot_profile(rng, top=0.23, knee_um=0.0, noise_um=2.0, dropout=0.3)
+        z = z + 0.045 * np.clip(1 - x / 0.1, 0, None) ** 2      # the knee's blend
+        lead = float(np.median(z[x >= 0.42]))
+        full, _ = _heel_fillet(x, z, np.full(z.shape, 1e-3), lead, foot_length_mm=0.84,
+                               pixel_size_mm=P_MM)
+        assert full > 0.23 + 0.02, full     # read as a fillet along the whole foot
+        blends.append(_heel_beyond_knee(x, z, np.full(z.shape, 1e-3), lead,
+                                        foot_length_mm=0.84, pixel_size_mm=P_MM,
+                                        mixing_mm=mixing))
+        x, z = _foot_profile(rng, knee_um=15.0, noise_um=2.0, dropout=0.3)
+        lead = float(np.median(z[x >= 0.42]))
+        fillets.append(_heel_beyond_knee(x, z, np.full(z.shape, 1e-3), lead,
+                                         foot_length_mm=0.84, pixel_size_mm=P_MM,
+                                         mixing_mm=mixing))
+    assert max(blends) <= 0.23 + 0.01, blends
+    assert all(abs(f - 0.29) <= 0.012 for f in fillets), fillets
+    # No focus window (true heights) or too few pixels beyond the reach: no evidence.
+    assert math.isnan(_heel_beyond_knee(x, z, np.full(z.shape, 1e-3), lead, foot_length_mm=0.84,
+                                        pixel_size_mm=P_MM, mixing_mm=0.0))
+    assert math.isnan(_heel_beyond_knee(x, z, np.full(z.shape, 1e-3), lead, foot_length_mm=0.84,
+                                        pixel_size_mm=P_MM, mixing_mm=0.83))
