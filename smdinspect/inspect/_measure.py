@@ -147,6 +147,7 @@ class JointMeasurement:
     foot_mm: float = NAN            # gull-wing: percentile over the foot
     heel_fit_n: int = 0             # gull-wing: reliable foot pixels the heel meniscus is fitted to
     heel_reach_mm: float = NAN      # ... and how far along the foot the fitted meniscus runs
+    heel_mm: float = NAN            # ... the heel fillet's top it gives
     heel_far_mm: float = NAN        # ... the same fit over the foot beyond the knee's mixing reach
     side_mm: float = NAN            # gull-wing: percentile over the side region
     side_level_mm: float = NAN      # ... and its median (the solder level beside the foot)
@@ -814,7 +815,8 @@ def _heel_fillet(x: np.ndarray, z: np.ndarray, uz: np.ndarray, lead_mm: float, *
 
 
 def _heel_beyond_knee(x: np.ndarray, z: np.ndarray, uz: np.ndarray, lead_mm: float, *,
-                      foot_length_mm: float, pixel_size_mm: float, mixing_mm: float) -> float:
+                      foot_length_mm: float, pixel_size_mm: float,
+                      mixing_mm: float) -> tuple[float, float]:
     """The heel fillet's top as the foot beyond the knee's mixing reach tells it.
 
     The knee rises from the heel to the mould's exit, several times the lead's height;
@@ -825,18 +827,19 @@ def _heel_beyond_knee(x: np.ndarray, z: np.ndarray, uz: np.ndarray, lead_mm: flo
     pixels beyond that reach alone, extrapolated to the heel, still stands above the
     lead. The fitted reach is at least twice the mixing reach (as much meniscus seen as
     hidden): a meniscus ending just past the blend would extrapolate a pixel's noise
-    tenfold. NaN when too few pixels lie beyond it, or when they put the solder clearly
-    below the lead's own top (no evidence either way)."""
+    tenfold. Returns (top, its uncertainty as :func:`_heel_fillet`'s); NaN when too few
+    pixels lie beyond it, or when they put the solder clearly below the lead's own top
+    (no evidence either way)."""
     x = np.asarray(x, np.float64)
     far = x >= mixing_mm
     if mixing_mm <= 0 or far.sum() < HEEL_FIT_MIN_PIXELS:
-        return NAN
-    top, _ = _heel_fillet(x[far], np.asarray(z)[far], np.asarray(uz)[far], lead_mm,
+        return NAN, NAN
+    top, u = _heel_fillet(x[far], np.asarray(z)[far], np.asarray(uz)[far], lead_mm,
                           foot_length_mm=foot_length_mm, pixel_size_mm=pixel_size_mm,
                           min_reach_mm=2.0 * mixing_mm)
     # solder standing clearly below the lead's own top is no meniscus on it: the far
     # pixels are not the foot (an unmeasured or glinting foot), no evidence
-    return top if top >= lead_mm - 0.02 else NAN
+    return (top, u) if top >= lead_mm - 0.02 else (NAN, NAN)
 
 
 def _seen_next_to_lead(side: np.ndarray, rel: np.ndarray, across: np.ndarray,
@@ -926,17 +929,17 @@ def _measure_gullwing(comp, joint, win: _Win, config: InspectConfig, level: floa
     # The solder on the foot: its top at the heel from the meniscus fitted along the foot
     # (hundreds of pixels), not the percentile (the highest few, next to the knee's
     # blurred edge); the percentile when too few foot pixels are reliable.
-    on_foot, u_on_foot, heel_n = m.foot_mm, u_foot, 0
+    on_foot, u_on_foot, heel_n, u_far = m.foot_mm, u_foot, 0, NAN
     if fr.sum() >= HEEL_FIT_MIN_PIXELS and np.isfinite(m.lead_mm):
         heel_info: dict = {}
         hf_mm, u_hf = _heel_fillet(u[fr] - heel, win.h[fr], win.u[fr], m.lead_mm,
                                    foot_length_mm=toe - heel, pixel_size_mm=p, info=heel_info)
         if np.isfinite(hf_mm):
             on_foot, u_on_foot, heel_n = hf_mm, u_hf, int(fr.sum())
-            m.heel_reach_mm = heel_info.get("reach_mm", NAN)
-            m.heel_far_mm = _heel_beyond_knee(u[fr] - heel, win.h[fr], win.u[fr], m.lead_mm,
-                                              foot_length_mm=toe - heel, pixel_size_mm=p,
-                                              mixing_mm=win.ctx.mixing_mm)
+            m.heel_reach_mm, m.heel_mm = heel_info.get("reach_mm", NAN), hf_mm
+            m.heel_far_mm, u_far = _heel_beyond_knee(
+                u[fr] - heel, win.h[fr], win.u[fr], m.lead_mm, foot_length_mm=toe - heel,
+                pixel_size_mm=p, mixing_mm=win.ctx.mixing_mm)
     # Solder that wets the heel wets the pad beside the foot too: a heel reading with the
     # side region at bare-pad level (below missing_height_mm) is the knee's blurred edge
     # on a dry foot, not a fillet (tuning boards 8-47: good joints' side percentile
@@ -947,9 +950,14 @@ def _measure_gullwing(comp, joint, win: _Win, config: InspectConfig, level: floa
     # unreliable, so a strip measured only at its outer edge reads low on a good joint.
     side_bare = (np.isfinite(m.side_mm) and m.side_mm < config.missing_height_mm
                  and _seen_next_to_lead(side, win.rel, np.abs(v), b2))
-    # A heel reading the foot beyond the knee's mixing reach does not bear out is the
-    # knee's edge blended into the foot (a dry heel), not solder.
-    knee_blend = np.isfinite(m.heel_far_mm) and m.heel_far_mm <= g_t + 0.02
+    # A heel reading the foot beyond the knee's mixing reach does not bear out (the fit
+    # there stays under the 20 µm above the lead by twice its uncertainty) may be the
+    # knee's edge blended into a dry heel: it is no evidence against the side strip,
+    # and where the strip reads the joint under its minimum, the strip's reading
+    # stands. (Where the strip passes it too, the foot's reading is kept: it varies
+    # less between sweeps.)
+    knee_blend = (np.isfinite(m.heel_far_mm) and m.heel_far_mm + 2 * u_far <= g_t + 0.02
+                  and np.isfinite(side_f) and side_f < joint.min_height_mm)
     if (np.isfinite(on_foot) and on_foot > g_t + 0.02 and not raised_lead and not side_bare
             and not knee_blend):
         m.max_mm, m.u_max_mm, m.max_method = on_foot, _hypot(u_on_foot, u_level), "foot"

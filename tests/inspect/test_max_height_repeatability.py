@@ -199,16 +199,17 @@ def test_the_knees_blend_on_a_dry_heel_is_not_borne_out_beyond_its_reach():
         assert full > 0.23 + 0.02, full     # read as a fillet along the whole foot
         blends.append(_heel_beyond_knee(x, z, np.full(z.shape, 1e-3), lead,
                                         foot_length_mm=0.84, pixel_size_mm=P_MM,
-                                        mixing_mm=mixing))
+                                        mixing_mm=mixing)[0])
         x, z = _foot_profile(rng, knee_um=15.0, noise_um=2.0, dropout=0.3)
         lead = float(np.median(z[x >= 0.42]))
-        fillets.append(_heel_beyond_knee(x, z, np.full(z.shape, 1e-3), lead,
-                                         foot_length_mm=0.84, pixel_size_mm=P_MM,
-                                         mixing_mm=mixing))
+        top, u = _heel_beyond_knee(x, z, np.full(z.shape, 1e-3), lead, foot_length_mm=0.84,
+                                   pixel_size_mm=P_MM, mixing_mm=mixing)
+        assert 0 < u < 0.006, u
+        fillets.append(top)
     assert max(blends) <= 0.23 + 0.01, blends
     assert all(abs(f - 0.29) <= 0.012 for f in fillets), fillets
     # No focus window (true heights) or too few pixels beyond the reach: no evidence.
-    assert math.isnan(_heel_beyond_knee(x, z, np.full(z.shape, 1e-3), lead, foot_length_mm=0.84,
-                                        pixel_size_mm=P_MM, mixing_mm=0.0))
-    assert math.isnan(_heel_beyond_knee(x, z, np.full(z.shape, 1e-3), lead, foot_length_mm=0.84,
-                                        pixel_size_mm=P_MM, mixing_mm=0.83))
+    for mixing in (0.0, 0.83):
+        assert all(map(math.isnan, _heel_beyond_knee(
+            x, z, np.full(z.shape, 1e-3), lead, foot_length_mm=0.84, pixel_size_mm=P_MM,
+            mixing_mm=mixing)))
