@@ -519,3 +519,48 @@ def test_a_heel_reading_on_a_dry_foot_is_not_a_fillet():
     result, jid = with_heel_bump("", "U1.3")
     j = {x.id: x for x in result.joints}[jid]
     assert j.max_method == "foot" and j.verdict.value == "ok", (j.max_method, j.reason)
+
+
+def test_a_heel_read_only_inside_the_knees_mixing_reach_gives_way_to_a_side_strip_under_the_minimum():
+    """Shape from focus blends the knee's edge into the foot's first pixels (within half
+    the focus window + 2 px of the heel): on an insufficient joint that blend reads as a
+    heel fillet and would pass it. Measured with a 5-px window (90 µm reach at 20 µm/px),
+    the fit beyond the reach does not bear it out and the side strip, under the minimum,
+    decides; without a window (true heights) the same foot passes. A good joint with the
+    same blend keeps its foot reading."""
+    from smdinspect.inspect._geometry import apply2d, polygon_mask, world_to_pixel
+    from smdinspect.sff._surface import pixel_to_xy_mm
+
+    def with_blend(defects, params, window_px):
+        surface, labels, board = truth_surface(DEMO, defects, seed=23, offset_mm=(0.0, 0.0),
+                                               rotate_deg=0.0, finish="hasl", hole_fraction=0.0,
+                                               params=params)
+        T = np.array(labels["placement"]["board_to_world"])
+        h = surface.height_mm.copy()
+        pad = polygon_mask(world_to_pixel(apply2d(T, np.asarray(board.joint("U1.3").polygon_mm)),
+                                          shape=h.shape, pixel_size_mm=0.02), h.shape)
+        comp = board.component("U1")
+        rr, cc = np.mgrid[0:h.shape[0], 0:h.shape[1]]
+        x, y = pixel_to_xy_mm(rr, cc, shape=h.shape, pixel_size_mm=0.02)
+        Ti = np.linalg.inv(T)
+        bxy = np.stack([(Ti[0, 0] * x + Ti[0, 1] * y + Ti[0, 2]).ravel(),
+                        (Ti[1, 0] * x + Ti[1, 1] * y + Ti[1, 2]).ravel()], 1)
+        loc = comp.to_local(bxy).reshape(*h.shape, 2)
+        centre = comp.to_local(np.asarray(board.joint("U1.3").polygon_mm)).mean(0)
+        ax = 0 if abs(centre[0]) > abs(centre[1]) else 1
+        d = np.sign(centre[ax]) * loc[..., ax] - (comp.lead["span_mm"] / 2
+                                                  - comp.lead["foot_length_mm"])
+        foot = pad & (d >= 0) & (h > 0.15)                      # the lead's foot on the pad
+        h[foot] += (0.06 * np.clip(1 - d[foot] / 0.1, 0, None) ** 2).astype(np.float32)
+        meta = dict(surface.meta or {})
+        meta["config"] = dict(meta.get("config") or {}, window_px=window_px)
+        result = inspect_surface(dataclasses.replace(surface, height_mm=h, meta=meta), board)
+        return {j.id: j for j in result.joints}["U1.3"]
+
+    short = ("U1.3:insufficient", {"U1.3": {"fraction": 0.85}})
+    j = with_blend(*short, window_px=0)
+    assert j.max_method == "foot" and j.verdict is Verdict.OK, j.reason
+    j = with_blend(*short, window_px=5)
+    assert j.max_method == "side" and j.verdict is Verdict.INSUFFICIENT, j.reason
+    j = with_blend("", None, window_px=5)
+    assert j.max_method == "foot" and j.verdict is Verdict.OK, j.reason
