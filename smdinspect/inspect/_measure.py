@@ -37,7 +37,10 @@ Gull-wing heel joint
     come and go), and reads closer to the truth (simulated demo boards, 20 µm/px: σ 7.6
     → 4.6 µm, bias −8.5 → −3.5 µm); the percentile stands in when fewer than
     :data:`HEEL_FIT_MIN_PIXELS` foot pixels are reliable. When that solder climbs more than 20 µm above the lead's
-    nominal top, it is the joint's max height (``max_method`` "foot").
+    nominal top, it is the joint's max height (``max_method`` "foot") — unless only the
+    foot's first pixels, within :attr:`MeasureContext.mixing_mm` of the heel, bear it
+    out (the knee's edge blends into them: a dry heel reads like a short meniscus) and
+    the side strip reads the joint under its minimum (:func:`_heel_beyond_knee`).
     Otherwise it is estimated from the side fillets: the side region's percentile
     divided by ``side_fillet_ratio``. This is a calibration, not a model: the strip
     beside a lead (0.09 mm on an SOIC pad) is narrower than the focus window, and
@@ -951,8 +954,8 @@ def _measure_gullwing(comp, joint, win: _Win, config: InspectConfig, level: floa
     side_bare = (np.isfinite(m.side_mm) and m.side_mm < config.missing_height_mm
                  and _seen_next_to_lead(side, win.rel, np.abs(v), b2))
     # A heel reading the foot beyond the knee's mixing reach does not bear out (the fit
-    # there stays under the 20 µm above the lead by twice its uncertainty) may be the
-    # knee's edge blended into a dry heel: it is no evidence against the side strip,
+    # there stays under 20 µm above the nominal lead top by twice its uncertainty) may
+    # be the knee's edge blended into a dry heel: it is no evidence against the side strip,
     # and where the strip reads the joint under its minimum, the strip's reading
     # stands. (Where the strip passes it too, the foot's reading is kept: it varies
     # less between sweeps.)

@@ -521,7 +521,7 @@ def test_a_heel_reading_on_a_dry_foot_is_not_a_fillet():
     assert j.max_method == "foot" and j.verdict.value == "ok", (j.max_method, j.reason)
 
 
-def test_a_heel_read_only_inside_the_knees_mixing_reach_gives_way_to_a_side_strip_under_the_minimum():
+def test_a_heel_seen_only_in_the_knees_blend_yields_to_a_side_strip_under_the_minimum():
     """Shape from focus blends the knee's edge into the foot's first pixels (within half
     the focus window + 2 px of the heel): on an insufficient joint that blend reads as a
     heel fillet and would pass it. Measured with a 5-px window (90 µm reach at 20 µm/px),
