@@ -35,6 +35,8 @@ from smdinspect.batch import (
 )
 from smdinspect.errors import InputError
 
+from ._procs import alive, children
+
 REPO = Path(__file__).resolve().parents[1]
 BOARD = REPO / "references" / "demo_board.json"
 PY = sys.executable
@@ -598,27 +600,6 @@ def test_dask_local_cluster_is_private(tmp_path):
 # -- kill and resume -----------------------------------------------------------------
 
 
-def _children(pid: int) -> list[int]:
-    kids = []
-    for p in Path("/proc").iterdir():
-        if p.name.isdigit():
-            try:
-                stat = (p / "stat").read_text()
-            except OSError:
-                continue
-            if int(stat.rsplit(")", 1)[1].split()[1]) == pid:
-                kids.append(int(p.name))
-    return kids
-
-
-def _alive(pid: int) -> bool:
-    try:
-        state = Path(f"/proc/{pid}/stat").read_text().rsplit(")", 1)[1].split()[0]
-    except OSError:
-        return False
-    return state != "Z"
-
-
 @pytest.mark.skipif(not sys.platform.startswith("linux"), reason="uses /proc and SIGKILL")
 def test_killed_batch_rerun_finishes_the_rest(pool_run, stacks, tmp_path):
     out = tmp_path / "reports"
@@ -637,7 +618,7 @@ def test_killed_batch_rerun_finishes_the_rest(pool_run, stacks, tmp_path):
         assert proc.poll() is None, proc.stderr.read().decode()
         assert time.monotonic() < deadline, "no board finished within 120 s"
         time.sleep(0.02)
-    kids = _children(proc.pid)
+    kids = children(proc.pid)
     proc.send_signal(signal.SIGKILL)
     proc.wait(10)
     proc.stderr.close()
@@ -647,9 +628,9 @@ def test_killed_batch_rerun_finishes_the_rest(pool_run, stacks, tmp_path):
     assert not (out / "summary.csv").exists()
     # the pool's worker processes die with the batch (no orphan keeps writing reports)
     t = time.monotonic()
-    while any(_alive(k) for k in kids) and time.monotonic() - t < 10:
+    while any(alive(k) for k in kids) and time.monotonic() - t < 10:
         time.sleep(0.05)
-    assert kids and not any(_alive(k) for k in kids)
+    assert kids and not any(alive(k) for k in kids)
 
     rerun = subprocess.run(cmd, cwd=REPO, capture_output=True, text=True, timeout=180)
     assert rerun.returncode == pool_run.exit_code, rerun.stderr

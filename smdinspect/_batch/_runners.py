@@ -29,7 +29,6 @@ import multiprocessing
 import os
 import queue as queue_mod
 import shutil
-import sys
 import tempfile
 import threading
 import uuid
@@ -39,6 +38,7 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any, Callable, Iterator, Sequence
 
+from .._proc import die_with_parent
 from ..errors import InputError
 from . import _job
 from ._job import BoardJob, BoardResult, BoardStatus, record_error, run_board
@@ -133,16 +133,7 @@ def _init_worker(threads: int, progress_queue: Any = None) -> None:
       are respected); OpenCV and Open3D are sized per board by
       :func:`~smdinspect._batch._job.limit_native_threads`.
     """
-    if sys.platform.startswith("linux"):
-        try:
-            import ctypes
-            import signal
-
-            libc = ctypes.CDLL(None, use_errno=True)
-            pr_set_pdeathsig = 1
-            libc.prctl(pr_set_pdeathsig, int(signal.SIGKILL), 0, 0, 0)
-        except (OSError, AttributeError):  # pragma: no cover - exotic libc
-            pass
+    die_with_parent()
     for var in ("OMP_NUM_THREADS", "OPENBLAS_NUM_THREADS", "MKL_NUM_THREADS"):
         os.environ.setdefault(var, str(threads))
     if progress_queue is not None:

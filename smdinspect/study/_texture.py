@@ -28,6 +28,7 @@ from typing import Any, Callable, Sequence
 
 import numpy as np
 
+from .._proc import die_with_parent
 from ..errors import InputError
 from ..stack import FocalStack, Frame
 
@@ -460,7 +461,8 @@ def run_texture_study(out_dir: str | Path, config: TextureStudyConfig | None = N
     # processes, not threads: a 64-px cell is mostly Python, which threads run one at a
     # time (the quick study took 131 s on 2 threads, 51 s on 2 processes)
     pool = ProcessPoolExecutor(max_workers=min(config.workers, max(len(todo), 1)),
-                               mp_context=multiprocessing.get_context("spawn"))
+                               mp_context=multiprocessing.get_context("spawn"),
+                               initializer=die_with_parent)  # no orphans if killed
     try:
         futures = [pool.submit(_work, cell, config, cells_dir) for cell in todo]
         for fut in as_completed(futures):

@@ -25,6 +25,8 @@ from smdinspect.study import (
 )
 from smdinspect.synth import TEST_SEEDS
 
+from .._procs import alive, children
+
 SEED = TEST_SEEDS[14]
 # a study of 4 cells and 2 operators: seconds, for the resume tests
 TINY = dict(scenes=("cone", "steps"), textures=("band",), contrasts=(0.02, 0.2),
@@ -156,9 +158,10 @@ def test_finished_cells_are_not_recomputed(tmp_path):
     assert json.loads(cells[1].read_text())["key"] == cells[1].stem
 
 
+@pytest.mark.skipif(not sys.platform.startswith("linux"), reason="reads /proc")
 def test_killed_run_resumes(tmp_path):
-    """SIGKILL mid-run: the stored cells are whole, a rerun computes only the rest and
-    gives the same table as an uninterrupted run."""
+    """SIGKILL mid-run: the worker processes die too, the stored cells are whole, a rerun
+    computes only the rest and gives the same table as an uninterrupted run."""
     out = tmp_path / "killed"
     cmd = [sys.executable, "-m", "smdinspect", "-q", "study", "texture", "--quick",
            "--operators", "sml,gder", "--seed", str(SEED), "--workers", "2"]
@@ -167,8 +170,14 @@ def test_killed_run_resumes(tmp_path):
     deadline = time.monotonic() + 60
     while time.monotonic() < deadline and len(list((out / "cells").glob("[!.]*.json"))) < 5:
         time.sleep(0.05)
+    workers = children(proc.pid)
     os.kill(proc.pid, signal.SIGKILL)
     proc.wait()
+    # the worker processes die with the study instead of living on as orphans
+    deadline = time.monotonic() + 10
+    while time.monotonic() < deadline and any(alive(w) for w in workers):
+        time.sleep(0.05)
+    assert workers and not any(alive(w) for w in workers)
     stored = list((out / "cells").glob("[!.]*.json"))
     assert 5 <= len(stored) < 72
     for p in stored:
