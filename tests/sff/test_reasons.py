@@ -65,7 +65,7 @@ def test_the_reasons_are_the_causes_put_in_the_scene(scene):
     band[100:116] = True
     band &= (height > z[0] + 0.1) & (height < z[-1] - 0.1)
     # (its rows by the texture see the texture's blur in their windows: their curves
-    # may pass the noise test and fail otherwise)
+    # may pass the noise test and fail otherwise; never measured)
     assert band.any() and (s.reason[band] == CODE["weak_texture"]).mean() > 0.75
     # Never measured where the own-window check's 5-px window holds no texture (2 rows
     # in from each edge); in the edge rows a height kept is the texture's next to it.
