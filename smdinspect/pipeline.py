@@ -142,7 +142,7 @@ def inspection_focus_config(pixel_size_mm: float | None = None):
     """The focus settings inspection uses by default: a 5-pixel window (more at a pixel
     size finer than 11.7 µm: :func:`inspection_window_px`).
 
-    Solder fillets are steep and narrow; the reconstruction default (11 px) spreads every
+    Solder fillets are steep and narrow; the reconstruction default (9 px) spreads every
     body edge over the fillet next to it and smooths the fillet itself. On the synthetic
     boards (20 µm/px) a 5-px window halved the contaminated band and tracked the fillet
     profile within ~20 %, while edge pixels came out unreliable instead of wrong.

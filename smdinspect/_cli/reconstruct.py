@@ -41,8 +41,8 @@ def add_stack_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--operator", default="sml", choices=(*OPERATORS, "auto"), metavar="OP",
                    help="focus measure (default sml; one of: %(choices)s; auto, in "
                         "reconstruct: picked from the stack's texture by the texture study)")
-    p.add_argument("--window-px", type=int, default=11,
-                   help="focus window side, odd (default: 11 for reconstruct and calibrate; "
+    p.add_argument("--window-px", type=int, default=9,
+                   help="focus window side, odd (default: 9 for reconstruct and calibrate; "
                         "inspect, grr and batch: about 70 µm of the board, at least 5 px)")
     p.add_argument("--fit", default="power", choices=[m.value for m in FitMethod],
                    help="peak model, fitted above the curve's floor (default power: the "

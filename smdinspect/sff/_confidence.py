@@ -127,7 +127,7 @@ def confidence_cues(fit: PeakFit, *, window_px: int = 9, noise_spread_gain: floa
     The noise test: on a textureless pixel the focus curve is the
     sensor noise's focus measure, whose frame-to-frame spread relative to its mean falls
     as 1/√N with the N = window_px² pixels summed, so the peak-to-floor ratio A/b it can
-    fake shrinks as 1/window_px. The ramp is on (A/b)·window_px/9: at a 9-px
+    fake shrinks as 1/window_px. The ramp is on (A/b)·window_px/9: at the default 9-px
     window from A/b = 1.2 (0) to 2.2 (1); a 5-px window needs 1.8× more.
     ``noise_spread_gain`` (≥ 1 with a noise pre-filter: its correlated noise sums fewer
     independent responses, :func:`~smdinspect.sff._focus.noise_focus_spread`) divides

@@ -155,7 +155,7 @@ class FocusConfig:
     """
 
     operator: str = "sml"
-    window_px: int = 11
+    window_px: int = 9
     threshold: float = 0.0
     fit: FitMethod = FitMethod.POWER
     fit_half_width: int = 3

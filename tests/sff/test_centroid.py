@@ -49,9 +49,7 @@ def test_cone_error_drops_with_the_correction(tmp_path):
     stack = FocalStack.open(tmp_path / "c")
     rmse = {}
     for on in (False, True):
-        # a 9-px window: the 11-px default bends this small cone's curvature into a
-        # larger residual (0.076 Δd with the correction), the drop is the same
-        s = reconstruct(stack, FocusConfig(window_px=9, centroid_correction=on))
+        s = reconstruct(stack, FocusConfig(centroid_correction=on))
         e = (s.height_mm - height)[s.reliable] / step
         assert s.reliable.mean() > 0.95
         rmse[on] = float(np.sqrt(np.mean(e ** 2)))

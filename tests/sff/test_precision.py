@@ -99,9 +99,7 @@ def test_precision_is_unknown_at_coarse_steps(tmp_path):
 def test_coarse_fills_stop_where_the_slope_under_the_window_could_bias_them(tmp_path):
     """A coarse window reads its footprint's energy-weighted mean height: on a plane
     steep against its footprint it is not filled from; on a gentle one it is."""
-    # the 9-px window these figures were set with (with the 11-px default the fine level
-    # itself measures more of the gentle plane: 6 % filled)
-    cfg = FocusConfig(prefilter_px=0, window_px=9)
+    cfg = FocusConfig(prefilter_px=0)
     fills = {}
     # 0.6 mm over the 181-px diagonal: 0.047 steps/px, |∇h|·28/4 px = 0.33 step (filled);
     # 2.5 mm: 0.2 steps/px, 1.4 steps (not filled)

@@ -67,13 +67,7 @@ def test_the_reasons_are_the_causes_put_in_the_scene(scene):
     # (its rows by the texture see the texture's blur in their windows: their curves
     # may pass the noise test and fail otherwise; never measured)
     assert band.any() and (s.reason[band] == CODE["weak_texture"]).mean() > 0.75
-    # Never measured where the own-window check's 5-px window holds no texture (2 rows
-    # in from each edge); in the edge rows a height kept is the texture's next to it.
-    inside = band.copy()
-    inside[[100, 101, 114, 115]] = False
-    assert not s.reliable[inside].any()
-    edge = band & s.reliable
-    assert np.all(np.abs(s.height_mm - height)[edge] < 0.5 * abs(z[1] - z[0]))
+    assert not s.reliable[band].any()
     # the glint's inside: over-exposed
     inner = np.zeros_like(glint)
     inner[26:38, 26:38] = True
