@@ -166,14 +166,16 @@ def inspection_focus_config(pixel_size_mm: float | None = None):
     fillet profiles and the gauge figures above were measured with. No precision cue
     (``precision_check``): a joint is a robust fit over its pad's pixels, and dropping
     the noisier fillet pixels left gull-wing heels without readings (demo-board GR&R,
-    3 sweeps: SOIC-8 parts read 8 -> 6).
+    3 sweeps: SOIC-8 parts read 8 -> 6). No local plane over the heights
+    (``plane_px``): a joint's fit already averages its pixels, and a 5-px plane on a
+    5-px window widens the footprint the fillet profiles were measured with.
     """
     from .sff import FocusConfig
 
     return FocusConfig(window_px=inspection_window_px(pixel_size_mm), halo_ratio=8.0,
                        coarse_factor=0, support_steps=0,
                        own_window_px=3, edge_gap_check=False, fit_power=None, prefilter_px=0.0,
-                       precision_check=False)
+                       precision_check=False, plane_px=0)
 
 
 def inspect_stack(

@@ -62,6 +62,10 @@ def add_stack_arguments(p: argparse.ArgumentParser) -> None:
                    help="coarse focus levels (4x, 16x, 64x blocks) filling what finer ones left "
                         "unreliable, on smooth, weakly textured parts (default 2; inspect and "
                         "grr use none)")
+    p.add_argument("--plane-px", type=int, default=None, metavar="PX",
+                   help="each reliable height becomes the least-squares plane through the "
+                        "reliable heights of the PX square around it (odd; 0 off; default 5 "
+                        "for reconstruct, 0 for inspect and grr)")
     p.add_argument("--band-mpixels", type=float, default=None, metavar="MPX",
                    help="frames larger than this are measured in bands of rows of at most MPX "
                         "megapixels each, margins included: memory follows the band, not the "
@@ -100,6 +104,8 @@ def focus_config_from(args: argparse.Namespace, base=None):
         given["window_px"] = args.window_px
     if getattr(args, "coarse_levels", None) is not None:  # else the base's (or the default)
         given["coarse_levels"] = args.coarse_levels
+    if getattr(args, "plane_px", None) is not None:
+        given["plane_px"] = args.plane_px
     if getattr(args, "band_mpixels", None) is not None:
         given["band_mpixels"] = args.band_mpixels
     if getattr(args, "prefilter", None) is not None:

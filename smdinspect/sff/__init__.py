@@ -8,7 +8,7 @@ from ._align import Alignment, estimate_alignment
 from ._config import FitMethod, FocusConfig
 from ._confidence import (borrowed_mask, confidence_map, depth_edge_mask, precision_steps,
                           unsupported_mask)
-from ._depth import PeakFit, PeakTracker, centroid_correction, fit_peaks
+from ._depth import PeakFit, PeakTracker, centroid_correction, fit_peaks, local_plane
 from ._export import (
     height_field_mesh,
     render_height_png,
@@ -45,6 +45,7 @@ __all__ = [
     "focus_measure",
     "focus_measure_moments",
     "height_field_mesh",
+    "local_plane",
     "noise_sigma",
     "pixel_to_xy_mm",
     "precision_steps",

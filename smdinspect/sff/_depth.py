@@ -23,7 +23,7 @@ import numpy as np
 
 from ._config import FitMethod
 
-__all__ = ["PeakFit", "PeakTracker", "centroid_correction", "fit_peaks"]
+__all__ = ["PeakFit", "PeakTracker", "centroid_correction", "fit_peaks", "local_plane"]
 
 _TINY = np.float32(1e-12)
 #: Samples beyond ±1 frame join the fit while above this fraction of the peak.
@@ -702,3 +702,61 @@ def centroid_correction(height_mm: np.ndarray, ok: np.ndarray, offset_px, *, win
     corr[~move] = 0.0
     return height_mm.astype(np.float32) - corr
 
+
+
+#: Share of a :func:`local_plane` square that must hold reliable heights for a plane.
+PLANE_MIN_SHARE = 0.6
+
+
+def local_plane(height_mm: np.ndarray, ok: np.ndarray, *, side_px: int,
+                rows_per_chunk: int = 512) -> tuple[np.ndarray, np.ndarray]:
+    """Each ``ok`` height replaced by the least-squares plane through the ``ok`` heights
+    of the ``side_px`` square around it, evaluated at its centre; ``(heights, used)``.
+
+    A height comes from the peak of a window's focus curve: a nonlinear reading, each
+    with its own random error (noise moves the peak). Averaging heights, after the
+    peak, lowers that error without the bias a larger focus window has on a slope (a
+    wider window mixes depths before the peak, and its peak favours the strongest
+    texture's): a plane through heights on a plane is the plane, whatever its slope.
+    What a plane cannot follow is curvature, a bias of about h''·(side² − 1)/12 per
+    axis (a 5-px square: h''·2 px², 0.03 Δd on a solder fillet at 20 µm/px). Only
+    pixels whose square is at least :data:`PLANE_MIN_SHARE` reliable move (a height
+    beside a gap keeps its reading). Computed in row chunks (bounded memory), float32
+    about the median height (no cancellation on a sweep far from z = 0).
+    """
+    h = np.asarray(height_mm, np.float32)
+    out = h.copy()
+    used = np.zeros(h.shape, bool)
+    if side_px < 3 or not ok.any():
+        return out, used
+    r = side_px // 2
+    ref = np.float32(np.median(h[ok]))
+    d = np.arange(-r, r + 1, dtype=np.float32)
+    one = np.ones_like(d)
+    need = PLANE_MIN_SHARE * side_px * side_px
+    for top in range(0, h.shape[0], rows_per_chunk):
+        lo, hi = max(top - r, 0), min(top + rows_per_chunk + r, h.shape[0])
+        w = ok[lo:hi].astype(np.float32)
+        wh = np.where(ok[lo:hi], h[lo:hi] - ref, 0).astype(np.float32)
+
+        def corr(src, kx, ky):  # Σ over the square of src(p + o)·kx(ox)·ky(oy)
+            return cv2.sepFilter2D(src, cv2.CV_32F, kx, ky, borderType=cv2.BORDER_CONSTANT)
+
+        s0, sx, sy = corr(w, one, one), corr(w, d, one), corr(w, one, d)
+        sxx, syy, sxy = corr(w, d * d, one), corr(w, one, d * d), corr(w, d, d)
+        t0, tx, ty = corr(wh, one, one), corr(wh, d, one), corr(wh, one, d)
+        # the intercept of the normal equations, by cofactors of the 3 × 3 moment matrix
+        c0 = sxx * syy - sxy * sxy
+        c1 = sxy * sy - sx * syy
+        c2 = sx * sxy - sxx * sy
+        det = s0 * c0 + sx * c1 + sy * c2
+        a = t0 * c0 + tx * c1 + ty * c2
+        k0, k1 = top - lo, min(top + rows_per_chunk, h.shape[0]) - lo
+        core = slice(k0, k1)
+        fine = ok[lo:hi][core] & (s0[core] >= need) & (det[core] > 0)
+        with np.errstate(divide="ignore", invalid="ignore"):
+            plane = a[core] / det[core] + ref
+        rows = slice(top, top + (k1 - k0))
+        np.copyto(out[rows], plane, where=fine)
+        used[rows] = fine
+    return out, used

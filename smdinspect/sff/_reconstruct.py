@@ -23,8 +23,8 @@ from ._config import FitMethod, FocusConfig
 from ._confidence import (PRECISION_BOX_WINDOWS, blur_px_per_frame, borrowed_mask,
                           confidence_cues, confidence_map, defocus_halo_mask, depth_edge_mask,
                           halo_reach_px, precision_steps, step_levels, unsupported_mask)
-from ._depth import (PeakTracker, centroid_correction, fit_peaks, masked_gradient,
-                     select_curve_power)
+from ._depth import (PeakTracker, centroid_correction, fit_peaks, local_plane,
+                     masked_gradient, select_curve_power)
 from ._focus import (FocusOperator, band_powers, focus_measure, focus_measure_moments,
                      noise_focus, noise_focus_spread, prefilter, prefilter_sigma)
 from ._surface import UNRELIABLE_REASONS, Surface, clipped_white, reason_shares
@@ -507,6 +507,12 @@ def _measure(run: "_Run", band: tuple[int, int, int, int], *,
                 height, reliable, distance_px=level.window_px, tol_mm=tol))
         confidence[lonely] = 0.0
         reliable &= ~lonely
+    if config.plane_px >= 3:
+        # the heights' random error averaged after the peak (precision: the reading's
+        # before it, which the plane does not raise: neighbouring windows overlap and
+        # their errors are largely shared, so how much it lowers them is not known here)
+        height, used = local_plane(height, reliable, side_px=config.plane_px)
+        stats["plane"] = float(np.count_nonzero(used[core]))
     # Why each pixel is unreliable: the first test it failed, in the order they are
     # made (later assignments win): the field and the sweep's ends, the alignment, the
     # confidence cues (failed), the halo checks, the depth edges, the support. (Where a
@@ -588,6 +594,9 @@ def _finish(run: "_Run", planes: dict, stats: dict, bands: list, *, t0: float,
                                     for f in factors}
     if len(bands) > 1:
         meta["bands"] = {"rows": [[b[2], b[3]] for b in bands], "margin_px": BAND_MARGIN_PX}
+    if config.plane_px >= 3:
+        meta["plane"] = {"side_px": config.plane_px, "fraction_of_reliable": round(
+            stats["plane"] / max(float(np.count_nonzero(reliable)), 1.0), 4)}
     pixel_size = stack.pixel_size_mm
     if alignment is not None:
         sources, info = alignment.parallax_sources(z_mm, height, reliable)

@@ -44,8 +44,9 @@ def test_coarse_steps_give_sub_frame_heights_without_terraces(tmp_path, dof_per_
     frac = np.interp(s.height_mm[r], z, np.arange(len(z))) % 1.0
     share = np.histogram(frac, bins=5, range=(0, 1))[0] / frac.size
     assert np.all(np.abs(share - 0.2) < 0.1), share  # terraced maps pile up near 0 and 1
-    # whole-frame heights (argmax) on the same stack: every position at a frame
-    g = reconstruct(stack, FocusConfig(fit="argmax"))
+    # whole-frame heights (argmax, no plane through them) on the same stack: every
+    # position at a frame
+    g = reconstruct(stack, FocusConfig(fit="argmax", plane_px=0))
     frac_g = np.interp(g.height_mm[g.reliable], z, np.arange(len(z))) % 1.0
     edge_bins = np.histogram(frac_g, bins=5, range=(0, 1))[0][[0, 4]].sum() / frac_g.size
     assert edge_bins > 0.9
@@ -115,8 +116,9 @@ def test_coarse_level_measures_weak_texture_the_fine_window_cannot(tmp_path):
     stack, truth = _weak_plane(tmp_path, contrast=0.08, seed=10_013)
     # no noise pre-filter: with it the fine level alone reaches 94 % on this plane; without
     # it the fine heights are too imprecise (precision cue: RMS 0.37 Δd measured)
-    fine = reconstruct(stack, FocusConfig(coarse_factor=0, prefilter_px=0))
-    both = reconstruct(stack, FocusConfig(prefilter_px=0))
+    # (no local plane: it would mix the fills into the fine heights beside them)
+    fine = reconstruct(stack, FocusConfig(coarse_factor=0, prefilter_px=0, plane_px=0))
+    both = reconstruct(stack, FocusConfig(prefilter_px=0, plane_px=0))
     assert both.reliable.mean() > fine.reliable.mean() + 0.06  # measured 0.03 -> 0.12
     assert both.meta["coarse_fraction"] > 0.07  # measured 0.11
     err = np.abs(both.height_mm - truth)[both.reliable] / 0.07
