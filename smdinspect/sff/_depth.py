@@ -709,7 +709,7 @@ PLANE_MIN_SHARE = 0.6
 
 
 def local_plane(height_mm: np.ndarray, ok: np.ndarray, *, side_px: int,
-                rows_per_chunk: int = 512) -> tuple[np.ndarray, np.ndarray]:
+                rows_per_chunk: int = 256) -> tuple[np.ndarray, np.ndarray]:
     """Each ``ok`` height replaced by the least-squares plane through the ``ok`` heights
     of the ``side_px`` square around it, evaluated at its centre; ``(heights, used)``.
 
