@@ -56,8 +56,8 @@ import numpy as np
 from ._depth import PeakFit
 
 __all__ = ["blur_px_per_frame", "borrowed_mask", "confidence_map", "defocus_halo_mask",
-           "depth_edge_mask", "halo_mask", "precision_steps", "step_levels",
-           "unsupported_mask"]
+           "depth_edge_mask", "halo_mask", "hidden_step_mask", "precision_steps",
+           "step_levels", "unsupported_mask"]
 
 R_LOW_DB, R_HIGH_DB = 14.0, 26.0
 WIDTH_OK, WIDTH_BAD = 2.0, 4.0
@@ -285,6 +285,62 @@ def depth_edge_mask(height_mm: np.ndarray, reliable: np.ndarray, *, jump_mm: flo
         # level the pixels beside a nearer, lower step are judged by
         flagged |= _above_step(h, across, radius_px)
     return flagged
+
+
+def hidden_step_mask(height_mm: np.ndarray, reliable: np.ndarray, measured: np.ndarray, *,
+                     jump_mm: float, radius_px: int, side_px: int) -> np.ndarray:
+    """(H, W) bool: reliable pixels on the high side of a step whose low side is all
+    unreliable, read from the unreliable pixels' own peaks.
+
+    Beside a tall body on weak texture the board's focus curves carry the body edge's
+    defocused blur as a second mode, so the board there is unreliable; the band of
+    board pixels within half a window of the body takes the body's height from the
+    edge in its window and stays reliable, and :func:`depth_edge_mask` sees no step:
+    no reliable height lies below. Each unreliable peak is untrusted alone, but most of
+    them still read their own surface (randomised tuning boards: 71-82 % of the peaks
+    called unreliable for their shape, a halo or a depth edge lie within 1 Δd). So a
+    reliable pixel within ``radius_px`` of an unreliable ``measured`` one (in the field,
+    a height read) is flagged where, in its ``side_px`` square, at least ``side_px``
+    pixels are unreliable and more than half of them read more than ``jump_mm`` below
+    it: the majority of its unreliable neighbours see a lower surface. Only the high
+    side is flagged (only it bleeds).
+
+    Counted per pixel through heights quantised by ``jump_mm``/2 (one box filter a
+    level that holds a candidate; a reading counts as below when it lies more than
+    ``jump_mm`` below, by up to ``jump_mm``/2 more).
+    """
+    import cv2
+
+    h = height_mm.astype(np.float32, copy=False)
+    un = measured & ~reliable & np.isfinite(h)
+    out = np.zeros(h.shape, bool)
+    if not un.any() or not reliable.any() or not jump_mm > 0:
+        return out
+    disc = cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (2 * radius_px + 1,) * 2)
+    cand = reliable & (cv2.dilate(un.view(np.uint8), disc) > 0)
+    if not cand.any():
+        return out
+    size = (side_px, side_px)
+
+    def count(mask: np.ndarray) -> np.ndarray:
+        return cv2.boxFilter(mask.view(np.uint8), cv2.CV_32F, size, normalize=False,
+                             borderType=cv2.BORDER_CONSTANT)
+
+    n_un = count(un)
+    cand &= n_un >= side_px * side_px // 4
+    q = np.float32(jump_mm / 2.0)
+    base = np.float32(h[un].min())
+    level = np.floor((np.where(un, h, base) - base) / q).astype(np.int32)
+    top = int(level[un].max()) + 1  # every reading lies below this level
+    need = np.floor((np.where(cand, h, base) - np.float32(jump_mm) - base) / q)
+    need = np.clip(need, 0, top).astype(np.int32)  # readings of lower levels count
+    below = np.zeros(h.shape, np.float32)
+    for k in np.unique(need[cand]):
+        if k == 0:
+            continue  # nothing lies below the lowest level
+        sel = cand & (need == k)
+        below[sel] = n_un[sel] if k >= top else count(un & (level < k))[sel]
+    return cand & (below > 0.5 * n_un)
 
 
 def _above_step(h: np.ndarray, level: np.ndarray, radius_px: int) -> np.ndarray:

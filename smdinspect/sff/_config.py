@@ -110,6 +110,9 @@ class FocusConfig:
         beside a tall step, where the halo test's reach grows with the depth gap, a
         square of 53 px over the pixels bordering a gap only, for that slope over half
         the square (see :func:`smdinspect.sff.depth_edge_mask`, ``gap_span_px``).
+        And where a step's low side is all unreliable, the majority of those
+        unreliable pixels' own (textured) peaks, in a ``window_px + 4`` square, reading
+        more than a step below (:func:`~smdinspect.sff._confidence.hidden_step_mask`).
         Default on.
     precision_check : bool
         Judge each height's random error (the precision cue: the even/odd split of its

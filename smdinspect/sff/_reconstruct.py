@@ -22,7 +22,8 @@ from ._blur_order import SIGMAS_PX, blur_order_suspect, reduce_frame
 from ._config import FitMethod, FocusConfig
 from ._confidence import (PRECISION_BOX_WINDOWS, blur_px_per_frame, borrowed_mask,
                           confidence_cues, confidence_map, defocus_halo_mask, depth_edge_mask,
-                          halo_reach_px, precision_steps, step_levels, unsupported_mask)
+                          halo_reach_px, hidden_step_mask, precision_steps, step_levels,
+                          unsupported_mask)
 from ._depth import (PeakTracker, centroid_correction, fit_peaks, local_plane,
                      masked_gradient, select_curve_power)
 from ._focus import (FocusOperator, band_powers, focus_measure, focus_measure_moments,
@@ -496,6 +497,13 @@ def _measure(run: "_Run", band: tuple[int, int, int, int], *,
                     height, reliable, jump_mm=jump, span_px=EDGE_SPAN_PX,
                     radius_px=level.window_px // 2 + 1, levels=levels)
         del levels
+        if config.edge_gap_check:
+            # a step whose low side is all unreliable, told by those pixels' own peaks
+            # (textured ones: a peak that fails the noise test is noise, anywhere)
+            textured = field & (failed != REASON["weak_texture"])
+            edges |= hidden_step_mask(height, reliable, textured, jump_mm=abs(jump),
+                                      radius_px=config.window_px // 2 + 1,
+                                      side_px=config.window_px + 4)
         confidence[edges] = 0.0
     reliable = confidence >= config.min_confidence
     if config.support_steps > 0:

@@ -58,7 +58,9 @@ def test_own_window_check_removes_borrowed_heights(board):
     edge keeps the edge's height (measured, demo / dense: 1.27 / 1.21 per mille of the
     reliable pixels off by more than 3 steps against 0.87 / 0.62 with it, RMSE 0.33 /
     0.23 step against 0.28 / 0.18; before the centroid correction's own-level gradient
-    1.14 / 1.05 against 0.75 / 0.49)."""
+    1.14 / 1.05 against 0.75 / 0.49). The check for a step whose low side is all
+    unreliable (hidden_step_mask) now finds much of the same band: 0.36 / 0.41 against
+    0.30 / 0.29 per mille (without the gap checks 4.2 / 3.1 against 3.3 / 2.4)."""
     scene, stack = board
     on = reconstruct(stack, FocusConfig())
     off = reconstruct(stack, FocusConfig(own_window_px=0))
@@ -66,5 +68,5 @@ def test_own_window_check_removes_borrowed_heights(board):
     def far(s):
         return np.mean(np.abs(s.height_mm - scene.height_mm)[s.reliable] / STEP > 3)
 
-    assert far(off) > 1.3 * far(on), (far(off), far(on))
+    assert far(off) > 1.15 * far(on), (far(off), far(on))  # measured 1.21 / 1.39
     assert on.coverage > off.coverage - 0.01  # the check costs little coverage

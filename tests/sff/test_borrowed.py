@@ -107,3 +107,65 @@ def test_depth_edge_mask_looks_across_a_gap_that_grows_with_the_step():
     cut[:, 40:40 + gap] = False
     assert not depth_edge_mask(slope, cut, jump_mm=3 * step, radius_px=5,
                                wide_span_px=spans, gap_span_px=53).any()
+
+
+def _body_on_weak_board(*, board_reads, seed=10_210, step=0.05):
+    """A body 10 steps tall (columns 40+) beside a board (0) whose pixels are unreliable
+    but for a 4-px band at the body's foot that took the body's height (the bleed);
+    the board's unreliable peaks read ``board_reads(rng, shape)`` (mm)."""
+    rng = np.random.default_rng(seed)
+    h = np.zeros((60, 80), np.float32)
+    h[:, 40:] = 10 * step
+    ok = np.zeros(h.shape, bool)
+    ok[:, 36:] = True
+    h[:, 36:40] = 10 * step                         # the bled band
+    board = ~ok
+    h[board] = board_reads(rng, h.shape)[board]
+    return h, ok, step
+
+
+def test_hidden_step_mask_finds_a_step_whose_low_side_is_unreliable():
+    from smdinspect.sff._confidence import hidden_step_mask
+
+    # most unreliable board peaks read the board (a quarter read noise over the sweep)
+    def reads(rng, shape):
+        r = rng.normal(0, 0.02, shape)
+        noise = rng.random(shape) < 0.25
+        return np.where(noise, rng.uniform(0, 0.6, shape), r).astype(np.float32)
+
+    h, ok, step = _body_on_weak_board(board_reads=reads)
+    # the reliable heights alone show no step: the ordinary check flags nothing
+    assert not depth_edge_mask(h, ok, jump_mm=3 * step, radius_px=5).any()
+    flag = hidden_step_mask(h, ok, np.ones_like(ok), jump_mm=3 * step, radius_px=5, side_px=13)
+    assert flag[8:-8, 36:38].all()  # the band's outer columns (the corners: too few in the square)
+    assert not flag[:, 46:].any()                     # beyond the radius: kept
+    assert not flag[~ok].any()                        # only reliable pixels are judged
+
+
+def test_hidden_step_mask_needs_most_unreliable_neighbours_to_read_lower():
+    from smdinspect.sff._confidence import hidden_step_mask
+
+    # a plateau running on into weak texture at its own height (the peaks read it)
+    h, ok, step = _body_on_weak_board(
+        board_reads=lambda rng, shape: rng.normal(0.5, 0.02, shape).astype(np.float32))
+    assert not hidden_step_mask(h, ok, np.ones_like(ok), jump_mm=3 * step, radius_px=5,
+                                side_px=13).any()
+    # noise peaks spread over the whole sweep: fewer than half lie 3 steps below
+    h, ok, step = _body_on_weak_board(
+        board_reads=lambda rng, shape: rng.uniform(0, 1.0, shape).astype(np.float32))
+    assert not hidden_step_mask(h, ok, np.ones_like(ok), jump_mm=3 * step, radius_px=5,
+                                side_px=13).any()
+    # too few unreliable pixels in the square (a small hole): nothing told
+    h, ok, step = _body_on_weak_board(
+        board_reads=lambda rng, shape: np.zeros(shape, np.float32))
+    ok[:, :36] = True
+    ok[30:33, 33:36] = False                         # 9 pixels: under a quarter of 13²
+    assert not hidden_step_mask(h, ok, np.ones_like(ok), jump_mm=3 * step, radius_px=5,
+                                side_px=13).any()
+    # pixels not ``measured`` (weak texture: their peaks are noise) are no evidence
+    h, ok, step = _body_on_weak_board(
+        board_reads=lambda rng, shape: np.zeros(shape, np.float32))
+    assert hidden_step_mask(h, ok, np.ones_like(ok), jump_mm=3 * step, radius_px=5,
+                            side_px=13).any()
+    assert not hidden_step_mask(h, ok, ok.copy(), jump_mm=3 * step, radius_px=5,
+                                side_px=13).any()
