@@ -300,10 +300,11 @@ def hidden_step_mask(height_mm: np.ndarray, reliable: np.ndarray, measured: np.n
     them still read their own surface (randomised tuning boards: 71-82 % of the peaks
     called unreliable for their shape, a halo or a depth edge lie within 1 Δd). So a
     reliable pixel within ``radius_px`` of an unreliable ``measured`` one (in the field,
-    a height read) is flagged where, in its ``side_px`` square, at least ``side_px``
-    pixels are unreliable and more than half of them read more than ``jump_mm`` below
-    it: the majority of its unreliable neighbours see a lower surface. Only the high
-    side is flagged (only it bleeds).
+    a height read) is flagged where at least a quarter of its ``side_px`` square is
+    such unreliable pixels and more than half of them read more than ``jump_mm`` below
+    it: the majority of its unreliable neighbours see a lower surface (a quarter: a
+    small unreliable island, whose peaks are as likely noise, tells nothing). Only the
+    high side is flagged (only it bleeds).
 
     Counted per pixel through heights quantised by ``jump_mm``/2 (one box filter a
     level that holds a candidate; a reading counts as below when it lies more than

@@ -703,7 +703,6 @@ def centroid_correction(height_mm: np.ndarray, ok: np.ndarray, offset_px, *, win
     return height_mm.astype(np.float32) - corr
 
 
-
 #: Share of a :func:`local_plane` square that must hold reliable heights for a plane.
 PLANE_MIN_SHARE = 0.6
 

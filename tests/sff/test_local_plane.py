@@ -89,3 +89,26 @@ def test_reconstruct_planes_the_reliable_heights(tmp_path):
 def test_plane_px_must_be_odd_or_off(bad):
     with pytest.raises(InputError, match="plane_px"):
         FocusConfig(plane_px=bad)
+
+
+def test_reconstruct_command_takes_plane_px(tmp_path, capsys):
+    import json
+
+    from smdinspect.cli import main
+
+    _weak_plane(tmp_path, noise_seed=10_108, name="cli")
+    out = tmp_path / "out"
+    assert main(["-q", "reconstruct", str(tmp_path / "cli"), "--out", str(out),
+                 "--outputs", "height_mm.tiff"]) == 0
+    assert json.loads((out / "summary.json").read_text())["plane"]["side_px"] == 5
+    assert main(["-q", "reconstruct", str(tmp_path / "cli"), "--out", str(out),
+                 "--outputs", "height_mm.tiff", "--plane-px", "0"]) == 0
+    summary = json.loads((out / "summary.json").read_text())
+    assert "plane" not in summary and summary["config"]["plane_px"] == 0
+    capsys.readouterr()
+    before = sorted(p.name for p in out.iterdir())
+    assert main(["-q", "reconstruct", str(tmp_path / "cli"), "--out", str(out),
+                 "--plane-px", "4"]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and "plane_px must be" in err[0], err
+    assert sorted(p.name for p in out.iterdir()) == before  # nothing replaced
