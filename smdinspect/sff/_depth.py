@@ -733,14 +733,14 @@ def local_plane(height_mm: np.ndarray, ok: np.ndarray, *, side_px: int,
     d = np.arange(-r, r + 1, dtype=np.float32)
     one = np.ones_like(d)
     need = PLANE_MIN_SHARE * side_px * side_px
+
+    def corr(src, kx, ky):  # Σ over the square of src(p + o)·kx(ox)·ky(oy)
+        return cv2.sepFilter2D(src, cv2.CV_32F, kx, ky, borderType=cv2.BORDER_CONSTANT)
+
     for top in range(0, h.shape[0], rows_per_chunk):
         lo, hi = max(top - r, 0), min(top + rows_per_chunk + r, h.shape[0])
         w = ok[lo:hi].astype(np.float32)
         wh = np.where(ok[lo:hi], h[lo:hi] - ref, 0).astype(np.float32)
-
-        def corr(src, kx, ky):  # Σ over the square of src(p + o)·kx(ox)·ky(oy)
-            return cv2.sepFilter2D(src, cv2.CV_32F, kx, ky, borderType=cv2.BORDER_CONSTANT)
-
         s0, sx, sy = corr(w, one, one), corr(w, d, one), corr(w, one, d)
         sxx, syy, sxy = corr(w, d * d, one), corr(w, one, d * d), corr(w, d, d)
         t0, tx, ty = corr(wh, one, one), corr(wh, d, one), corr(wh, one, d)
