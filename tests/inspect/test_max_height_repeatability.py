@@ -38,15 +38,27 @@ P_MM = 0.02
 PLACEMENTS = ((0.3, -0.2, 3.7), (-0.4, 0.1, -3.7), (0.1, 0.4, -1.6), (-0.2, -0.3, 2.4))
 
 
+#: Boards (seeds) the sweeps are rendered of: one board's readings are one draw of its
+#: textures and fillets, and a bound that held for one board failed for another (seed 3
+#: read the heels' σ 8.1 µm where seed 2 read 4.3 µm).
+BOARD_SEEDS = (2, 3, 4)
+
+
 @pytest.fixture(scope="module")
 def gullwing_sweeps(tmp_path_factory):
-    return _measured(tmp_path_factory.mktemp("gw"), "U1", (3.4, 4.2), (330, 330), board_seed=2)
+    return _boards(tmp_path_factory.mktemp("gw"), "U1", (3.4, 4.2), (330, 330))
 
 
 @pytest.fixture(scope="module")
 def chip_sweeps(tmp_path_factory):
-    return _measured(tmp_path_factory.mktemp("chip"), "R3", (7.4, 8.95), (110, 190),
-                     board_seed=2)
+    return _boards(tmp_path_factory.mktemp("chip"), "R3", (7.4, 8.95), (110, 190))
+
+
+def _boards(root, ref, centre_mm, shape):
+    """:func:`_measured` of every board of ``BOARD_SEEDS``, keyed ``seed:joint``."""
+    return {f"{seed}:{jid}": v for seed in BOARD_SEEDS
+            for jid, v in _measured(root / f"b{seed}", ref, centre_mm, shape,
+                                    board_seed=seed).items()}
 
 
 def _measured(root, ref, centre_mm, shape, *, board_seed: int):
@@ -95,33 +107,33 @@ def _pooled_sd(arrays) -> float:
 
 
 def test_heel_fillet_more_repeatable_than_the_foot_percentile(gullwing_sweeps):
-    # The heel fillet is read on the foot. One of the 32 readings may fall to the side
-    # strip: since the centroid correction takes its gradient from the pixel's own level
-    # (no longer across the unmeasured wall between the lead's top and the pad), a steep
-    # side fillet reads near pad level, and board 2's U1.2 at the fourth placement reads
-    # 25 µm there with the strip beside the lead half measured (README, weak spots).
+    # The heel fillet is read on the foot. A few readings fall to the side strip: since
+    # the centroid correction takes its gradient from the pixel's own level (no longer
+    # across the unmeasured wall between the lead's top and the pad), a steep side fillet
+    # reads near pad level, and U1.2 at the fourth placement reads ~50 µm there on every
+    # board (a false `insufficient`: README, weak spots); 7 of the 96 readings here.
     methods = [m for v in gullwing_sweeps.values() for m in v[3]]
-    assert len(methods) == 32 and sum(m != "foot" for m in methods) <= 1, methods
+    assert len(methods) == 96 and sum(m != "foot" for m in methods) <= 8, methods
     foot = {k: np.array(v[3]) == "foot" for k, v in gullwing_sweeps.items()}
-    maxes = [v[0][foot[k]] for k, v in gullwing_sweeps.items()]
-    feet = [v[1][foot[k]] for k, v in gullwing_sweeps.items()]
+    maxes = [v[0][foot[k]] for k, v in gullwing_sweeps.items() if foot[k].sum() >= 2]
+    feet = [v[1][foot[k]] for k, v in gullwing_sweeps.items() if foot[k].sum() >= 2]
     sd_fit, sd_pct = _pooled_sd(maxes), _pooled_sd(feet)
-    # SOIC-8 band 130-572 µm: 10 % GR&R is σ = 7.4 µm. Here the fit reads 5.0 µm, the
-    # percentile (the max height before) 7.3 µm without the 3-px own-window check and
-    # 5.5 µm with it (borrowed heights at the knee's edge are dropped; the fit is
-    # unchanged).
-    assert sd_fit <= 6.5e-3, (sd_fit, sd_pct)
-    assert sd_fit < 0.95 * sd_pct, (sd_fit, sd_pct)
+    # SOIC-8 band 130-572 µm: 10 % GR&R is σ = 7.4 µm. Here the fit reads 6.6 µm pooled
+    # over the three boards, the foot's percentile (the max height before) 9.5 µm.
+    assert sd_fit <= 7.4e-3, (sd_fit, sd_pct)
+    assert sd_fit < 0.8 * sd_pct, (sd_fit, sd_pct)
     err = np.concatenate([(v[0] - v[2])[foot[k]] for k, v in gullwing_sweeps.items()])
     assert abs(float(np.mean(err))) <= 0.008, err
-    assert float(np.max(np.abs(err))) <= 0.025, err
+    assert float(np.max(np.abs(err))) <= 0.03, err
 
 
 def test_chip_meniscus_spread_bounded(chip_sweeps):
     maxes = [v[0] for v in chip_sweeps.values()]
     assert all(np.isfinite(m).all() for m in maxes)
-    # 0603 band 336 µm: 10 % GR&R is σ = 5.6 µm; the meniscus fit reads 4.6 µm here.
-    assert _pooled_sd(maxes) <= 6.5e-3, maxes
+    # 0603 band 336 µm: 10 % GR&R is σ = 5.6 µm; the meniscus fit reads 3.2 µm here,
+    # pooled over the three boards (4.3, 2.2, 2.6 µm; with the texture drawn in image
+    # coordinates, not fixed to the board: 4.6, 7.3, 5.6 µm).
+    assert _pooled_sd(maxes) <= 5.0e-3, maxes
 
 
 def _foot_profile(rng, *, lead=0.23, top=0.29, reach=0.3, length=0.84, knee_um=15.0,
