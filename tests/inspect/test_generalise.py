@@ -515,7 +515,7 @@ def test_a_heel_reading_on_a_dry_foot_is_not_a_fillet():
 
     result, jid = with_heel_bump("U1.3:missing", "U1.3")
     j = {x.id: x for x in result.joints}[jid]
-    assert j.max_method == "side" and j.verdict.value in ("missing", "insufficient"), (j.max_method, j.reason)
+    assert j.max_method.startswith("side") and j.verdict.value in ("missing", "insufficient"), (j.max_method, j.reason)
     result, jid = with_heel_bump("", "U1.3")
     j = {x.id: x for x in result.joints}[jid]
     assert j.max_method == "foot" and j.verdict.value == "ok", (j.max_method, j.reason)
@@ -561,6 +561,6 @@ def test_a_heel_seen_only_in_the_knees_blend_yields_to_a_side_strip_under_the_mi
     j = with_blend(*short, window_px=0)
     assert j.max_method == "foot" and j.verdict is Verdict.OK, j.reason
     j = with_blend(*short, window_px=5)
-    assert j.max_method == "side" and j.verdict is Verdict.INSUFFICIENT, j.reason
+    assert j.max_method.startswith("side") and j.verdict is Verdict.INSUFFICIENT, j.reason
     j = with_blend("", None, window_px=5)
     assert j.max_method == "foot" and j.verdict is Verdict.OK, j.reason

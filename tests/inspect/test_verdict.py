@@ -422,3 +422,32 @@ def test_a_shift_counts_only_beyond_the_slack_of_the_body_position():
     assert "over the pad's side" in _misplaced(comp, off)
     assert _misplaced(comp, off, (0.3, 0.0)) == ""       # could be 0.15 mm: within the limit
     assert "over the pad's side" in _misplaced(comp, off, (0.0, 0.3))   # slack along y only
+
+
+def test_a_heel_estimated_from_the_side_strip_never_passes_silently():
+    """A gull-wing whose heel is not measured has its height inferred from the strip
+    beside the lead (÷ side_fillet_ratio, a calibration): a pass on it says so in the
+    reason and in max_method (issue 12: an extrapolation never passes silently); a
+    failure on it keeps its verdict."""
+    board = load_board(DEMO)
+    comp, joint = board.component("U1"), board.joint("U1.3")
+    body = ComponentResult(ref="U1", kind="gullwing", package=comp.package,
+                           verdict=Verdict.OK, reason="", present_fraction=1.0,
+                           body_height_mm=1.5, offset_mm=(0.0, 0.0), tilt_deg=0.0,
+                           reliable_fraction=0.9)
+    cfg = InspectConfig()
+
+    def judge(side_mm, method="side"):
+        m = JointMeasurement(joint.id, (0.0, 0.0), 200, 0.8, max_mm=side_mm / cfg.side_fillet_ratio,
+                             u_max_mm=0.005, max_method=method, side_mm=side_mm)
+        return judge_joint(joint, comp, m, body, cfg)
+
+    good = judge(joint.nominal_height_mm * cfg.side_fillet_ratio)
+    assert good.verdict is Verdict.OK
+    assert "ESTIMATED from the side fillet" in good.reason and "heel is not measured" in good.reason
+    assert good.max_method.startswith("side (estimated")
+    low = judge(0.5 * joint.min_height_mm * cfg.side_fillet_ratio)
+    assert low.verdict is Verdict.INSUFFICIENT and low.max_method.startswith("side (estimated")
+    # a measured heel passes plainly
+    foot = judge(joint.nominal_height_mm * cfg.side_fillet_ratio, method="foot")
+    assert foot.verdict is Verdict.OK and "ESTIMATED" not in foot.reason
