@@ -178,6 +178,17 @@ def inspection_focus_config(pixel_size_mm: float | None = None):
                        precision_check=False, plane_px=0)
 
 
+def inspection_outputs() -> tuple[str, ...]:
+    """Every file :func:`inspect_stack` may write into its output folder (the
+    reconstruction's, the reports and the IPC-CFX message): what a later run may replace
+    there (``_atomic.replace_dir``)."""
+    from .inspect import REPORT_FILES
+    from .inspect._cfx import CFX_FILE
+    from .sff._export import RECONSTRUCTION_OUTPUTS
+
+    return (*RECONSTRUCTION_OUTPUTS, *REPORT_FILES, CFX_FILE)
+
+
 def inspect_stack(
     stack,
     board,

@@ -5,6 +5,7 @@ from __future__ import annotations
 import argparse
 import csv
 import math
+import re
 from pathlib import Path
 
 _EPILOG = """\
@@ -196,5 +197,20 @@ def _print_summary(study, args: argparse.Namespace) -> None:
     short = [r.key for r in study.rows if r.scope == "joint" and r.metric == "max_height_mm"
              and not math.isfinite(r.gauge.pct_tolerance)]
     if short:
-        print(f"  no %GR&R (fewer than 2 reliable readings): {', '.join(short[:10])}"
-              + (" ..." if len(short) > 10 else ""))
+        print("  no %GR&R (fewer than 2 reliable readings):")
+        for key in short[:10]:
+            print(f"    {key}: {_why_unread(study, key)}")
+        if len(short) > 10:
+            print(f"    ... and {len(short) - 10} more")
+
+
+def _why_unread(study, joint_id: str) -> str:
+    """How often a joint was `unreliable` over the sweeps, and why (the first such sweep's
+    reason, up to its first clause)."""
+    reasons = [str(j.get("reason", "")) for r in study.records for j in r.joints
+               if j.get("id") == joint_id and j.get("verdict") == "unreliable"]
+    n = len(study.records)
+    if not reasons:
+        return f"not measured in {n - 1} or more of {n} sweeps"
+    first = re.split(r": |; ", reasons[0], maxsplit=1)[0]
+    return f"unreliable in {len(reasons)} of {n} sweeps: {first}"

@@ -61,11 +61,9 @@ def run(args: argparse.Namespace) -> int:
     from ..cad import load_any_board
     from ..cli import progress_callback
     from ..errors import BoardNotLocatedError, InputError
-    from ..inspect import REPORT_FILES
     from ..inspect._board import check_board_in_field
-    from ..inspect._cfx import CFX_FILE
-    from ..pipeline import (inspect_stack, inspection_focus_config, is_reconstruction,
-                            load_reconstruction)
+    from ..pipeline import (inspect_stack, inspection_focus_config, inspection_outputs,
+                            is_reconstruction, load_reconstruction)
     from ..sff._export import RECONSTRUCTION_OUTPUTS
     from ..stack import open_stack
     from .reconstruct import check_calibration_argument, focus_config_from
@@ -90,8 +88,7 @@ def run(args: argparse.Namespace) -> int:
     not_located = None
     # Every output of this run goes to a temporary sibling of --out, swapped in at the end:
     # a run that fails leaves --out as it was, and no old report survives beside new ones.
-    with _atomic.replace_dir(args.out, replaces=RECONSTRUCTION_OUTPUTS + REPORT_FILES
-                             + (CFX_FILE,), carry=carry) as tmp:
+    with _atomic.replace_dir(args.out, replaces=inspection_outputs(), carry=carry) as tmp:
         try:
             focus = focus_config_from(args, inspection_focus_config(stack.pixel_size_mm))
             result = inspect_stack(stack, board, tmp, focus_config=focus,

@@ -185,10 +185,9 @@ def inspect_for_grr(stacks: Sequence[str | os.PathLike], board, out_dir: str | o
         A path that is neither a stack, a reconstruction nor a report folder.
     """
     from .. import _atomic
-    from ..inspect import REPORT_FILES
     from ..inspect._board import check_board_in_field
-    from ..pipeline import inspect_stack, is_reconstruction, load_reconstruction
-    from ..sff._export import RECONSTRUCTION_OUTPUTS
+    from ..pipeline import (inspect_stack, inspection_outputs, is_reconstruction,
+                            load_reconstruction)
     from ..stack import MANIFEST, open_stack
 
     paths = [Path(s) for s in stacks]
@@ -221,8 +220,7 @@ def inspect_for_grr(stacks: Sequence[str | os.PathLike], board, out_dir: str | o
         check_board_in_field(board, shape, stack.pixel_size_mm)
         log.info("inspecting %s (%d/%d)", path, i + 1, len(paths))
         not_located = None
-        with _atomic.replace_dir(out / label, replaces=RECONSTRUCTION_OUTPUTS + REPORT_FILES
-                                 ) as tmp:
+        with _atomic.replace_dir(out / label, replaces=inspection_outputs()) as tmp:
             try:
                 inspect_stack(stack, board, tmp, focus_config=focus_config,
                               inspect_config=inspect_config, html=html, source=str(path),

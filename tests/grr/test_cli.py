@@ -55,6 +55,25 @@ def test_grr_of_three_sweeps(study, capsys):
     assert all((out / "inspections" / f"sweep{k}" / "report.json").is_file() for k in (1, 2, 3))
 
 
+def test_the_same_study_again_into_the_same_folder(study, sweeps, capsys):
+    """A second run replaces the first one's outputs, each sweep's inspection folder
+    included (it failed on the IPC-CFX file the inspection writes there), and says why a
+    joint has no figure."""
+    root, code = study
+    _, stacks = sweeps
+    capsys.readouterr()
+    again = main(["grr", *stacks, "--board", DEMO, "--out", str(root / "grr")])
+    out = capsys.readouterr().out
+    assert again == code, out
+    assert (root / "grr" / "inspections" / "sweep1" / "cfx_units_inspected.json").is_file()
+    rows = list(csv.DictReader(open(root / "grr" / "grr.csv")))
+    short = [r["key"] for r in rows if r["scope"] == "joint" and r["metric"] == "max_height_mm"
+             and not r["pct_grr_tolerance"]]
+    assert short  # at 30 µm/px the 1206's fillet tops are not measured
+    for key in short:
+        assert f"    {key}: unreliable in " in out or f"    {key}: not measured" in out, out
+
+
 def test_report_folders_and_operators_from_a_manifest(study, capsys):
     root, _ = study
     capsys.readouterr()
