@@ -211,6 +211,7 @@ def _why_unread(study, joint_id: str) -> str:
                if j.get("id") == joint_id and j.get("verdict") == "unreliable"]
     n = len(study.records)
     if not reasons:
-        return f"not measured in {n - 1} or more of {n} sweeps"
+        unread = int(sum(not math.isfinite(v) for v in study.values["max_height_mm"][joint_id]))
+        return f"no max height read in {unread} of {n} sweeps"
     first = re.split(r": |; ", reasons[0], maxsplit=1)[0]
     return f"unreliable in {len(reasons)} of {n} sweeps: {first}"
