@@ -607,8 +607,8 @@ class _Canvas:
 
         gen = np.random.default_rng([self.seed, 0x7E47, k])
         sig = max(sigma_mm / self.p, 0.6)
-        hs, ws = board_shape(self.board, pixel_size_mm=self.p)
-        warp = self._board_warp((hs, ws))
+        hs, ws = self._own_shape
+        warp = self._own_warp
         if coarse and sig > 4:
             f = sig / 2.0
             small = (max(int(hs / f) + 2, 4), max(int(ws / f) + 2, 4))
@@ -657,6 +657,8 @@ class _Canvas:
         return np.hstack([m, (a0 - m @ a)[:, None]])
 
     def _textures(self) -> None:
+        self._own_shape = board_shape(self.board, pixel_size_mm=self.p)
+        self._own_warp = self._board_warp(self._own_shape)
         self.n_fine = self._noise(1, 0.009)
         self.n_med = self._noise(2, 0.04)
         self.n_coarse = self._noise(3, 0.5, coarse=True)

@@ -278,7 +278,7 @@ def test_a_replaced_board_keeps_its_texture(demo):
     study re-places one board; new texture under every joint counted against the gauge)."""
     kw = dict(pixel_size_mm=P, seed=5)
     a, la = board_scene(demo, offset_mm=(0.0, 0.0), rotate_deg=0.0, **kw)
-    b, lb = board_scene(demo, offset_mm=(0.3, -0.15), rotate_deg=0.0, **kw)  # 10 and 5 px
+    b, _ = board_scene(demo, offset_mm=(0.3, -0.15), rotate_deg=0.0, **kw)  # 10 and 5 px
     rows, cols = slice(150, 350), slice(150, 350)
     moved = (slice(155, 355), slice(160, 360))
     # (the same up to the rescaled spread and the drawn parts' sub-pixel edges)
