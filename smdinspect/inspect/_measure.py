@@ -175,6 +175,8 @@ class JointMeasurement:
     gap_blend_mm: float = NAN       # chip: a level path within the body edge's mixing reach
     gap_blend_neighbour: str = ""
     gap_unread: str = ""            # a neighbour the gap to which is not read at all
+    gap_glint: float = NAN          # largest share of a gap path's pixels clipped white
+    gap_glint_neighbour: str = ""
     level_mm: float = 0.0           # local board level removed
     polygon_px: np.ndarray | None = field(default=None, repr=False)
 
@@ -1043,6 +1045,16 @@ def _record_unread(joints, a: str, b: str, z: float, pooled: np.ndarray,
         joints[jid].gap_unread = joints[jid].gap_unread or other
 
 
+def _record_glint(joints, a: str, b: str, share: float) -> None:
+    """Keep the largest clipped share of a gap path on both joints."""
+    if not np.isfinite(share):
+        return
+    for jid, other in ((a, b), (b, a)):
+        m = joints[jid]
+        if not share <= m.gap_glint:
+            m.gap_glint, m.gap_glint_neighbour = share, other
+
+
 def _record_blend(joints, a: str, b: str, z: float) -> None:
     """Keep a level read where a body's edge blends into the heights (a possible web)."""
     if not np.isfinite(z):
@@ -1094,21 +1106,24 @@ def _measure_gaps(comp, win: _Win, config: InspectConfig, joints: dict[str, Join
             mixed |= _morph(body, mix / p, grow=True)
         for side in (-1.0, 1.0):
             ys = side * (hw + mg + np.arange(0.0, 0.1 + 1e-9, p))
-            z_out, f, sparse, open_share = _sample_paths(win, comp, xs, ys, body_grown, config)
+            z_out, f, sparse, open_share, glint = _sample_paths(win, comp, xs, ys, body_grown,
+                                                                config)
             _record(joints, a.id, b.id, z_out, f, np.empty(0), config)
+            _record_glint(joints, a.id, b.id, glint)
             # the band next to the body (nominal edge to body_margin_mm), where a web
             # that wets the body's side stands; the side's sparse paths pooled
             ys = side * (hw + np.arange(0.0, mg - 1e-9, p))
             below = body_top_mm - LEVEL_PATH_BODY_GAP_MM
-            z, f, band, _ = _sample_paths(win, comp, xs, ys, hug, config, level=True,
-                                       below_mm=below)
+            z, f, band, _, glint = _sample_paths(win, comp, xs, ys, hug, config, level=True,
+                                                 below_mm=below)
+            _record_glint(joints, a.id, b.id, glint)
             if mixed.any():
                 # within the mixing reach of the body's edge a level may be that edge
                 # blended with the board: evidence of a possible web, not a measurement;
                 # only the band beyond the reach measures one
                 _record_blend(joints, a.id, b.id, z)
-                z, f, _, _ = _sample_paths(win, comp, xs, ys, hug | mixed, config,
-                                           level=True, below_mm=below)
+                z, f, _, _, _ = _sample_paths(win, comp, xs, ys, hug | mixed, config,
+                                              level=True, below_mm=below)
             pooled = np.concatenate([sparse, band])
             _record(joints, a.id, b.id, z, f, pooled, config)
             _record_unread(joints, a.id, b.id, np.fmax(z_out, z), pooled, open_share)
@@ -1144,8 +1159,9 @@ def _measure_gaps(comp, win: _Win, config: InspectConfig, joints: dict[str, Join
             vs = np.arange(v0, v1 + 1e-9, p / 2)
             pts = (cc[None, None, :] + out_b[None, None, :] * us[:, None, None]
                    + acr_b[None, None, :] * vs[None, :, None])
-            z, f, sparse, open_share = _sample_board(win, pts, body_grown, config)
+            z, f, sparse, open_share, glint = _sample_board(win, pts, body_grown, config)
             _record(joints, a.id, b.id, z, f, sparse, config)
+            _record_glint(joints, a.id, b.id, glint)
             _record_unread(joints, a.id, b.id, z, sparse, open_share)
 
 
@@ -1159,8 +1175,9 @@ def _sample_paths(win: _Win, comp, xs, ys, exclude, config, **level):
 def _sample_board(win: _Win, pts: np.ndarray, exclude: np.ndarray, config: InspectConfig,
                   **level):
     """Paths are the rows of the BOARD point grid ``pts`` (n_paths, n_along, 2);
-    ``level`` as in :func:`_path_level`. Returns its three values and the share of the
-    grid open to be read (inside the image, not excluded)."""
+    ``level`` as in :func:`_path_level`. Returns its three values, the share of the
+    grid open to be read (inside the image, not excluded) and the largest share of a
+    path's open pixels clipped white (:func:`_glint_share`)."""
     shp = pts.shape[:2]
     cr = win.ctx.board_to_px(pts.reshape(-1, 2)) - win.origin
     c = np.round(cr[:, 0]).astype(int)
@@ -1171,7 +1188,30 @@ def _sample_board(win: _Win, pts: np.ndarray, exclude: np.ndarray, config: Inspe
     open_ = inside & ~exclude[r, c]
     valid = (open_ & win.rel[r, c]).reshape(shp)
     h = np.where(valid, win.h[r, c].reshape(shp), np.nan)
-    return (*_path_level(h, valid, config, **level), float(open_.mean()))
+    clipped = win.ctx.clipped
+    glint = NAN if clipped is None else _glint_share(open_.reshape(shp),
+                                                     clipped[win.sl][r, c].reshape(shp))
+    return (*_path_level(h, valid, config, **level), float(open_.mean()), glint)
+
+
+#: A path needs this many open pixels for its clipped share to count.
+MIN_GLINT_PATH_PIXELS = 3
+
+
+def _glint_share(open_: np.ndarray, clipped: np.ndarray) -> float:
+    """The largest share, over the paths (rows) with at least
+    :data:`MIN_GLINT_PATH_PIXELS` open pixels, of a path's open pixels clipped white;
+    NaN when no path has that many.
+
+    The gap between two pads is laminate or solder mask, which scatters light: it is not
+    clipped white where the pads and the solder are exposed right. Specular metal is: a
+    path from pad to pad that glints along most of its length is metal across the gap,
+    a web of solder whose glint leaves its heights unmeasured (the reliable pixels
+    pooled beside it then read the board, and a bridge would pass)."""
+    n = np.count_nonzero(open_, axis=1)
+    k = np.count_nonzero(open_ & clipped, axis=1)
+    ok = n >= MIN_GLINT_PATH_PIXELS
+    return float(np.max(k[ok] / n[ok])) if ok.any() else NAN
 
 
 # --------------------------------------------------------------------------------------

@@ -376,6 +376,39 @@ def test_a_gap_not_measured_at_all_does_not_pass_a_joint(unreliable_to_mm, verdi
             assert "gap to R1." in got[jid].reason and "not measured" in got[jid].reason
 
 
+@pytest.mark.parametrize("glint, verdict", [(True, Verdict.UNRELIABLE), (False, Verdict.OK)])
+def test_a_gap_that_glints_from_pad_to_pad_does_not_pass_a_joint(glint, verdict):
+    """A 0.16 mm web along a chip's side, 0.1-0.26 mm out from the body, clipped white
+    from pad to pad: its own heights are unmeasured (a glint has no texture) while the
+    board on either side of it reads board level, so every path that is read is low
+    (tuning seed dense 225 R2: a 0.18 mm bridge, 0.33 mm wide, passed `ok`). Laminate
+    and mask scatter; specular metal clips: the joints are `unreliable`, "possible
+    bridge". The same unreliable strip without the glint (dull, textureless) leaves the
+    gap read on the board beside it, and the joints pass."""
+    import dataclasses
+
+    board, off, shape = part_crop(DEMO, "R1")
+    s, labels, b = truth_surface(board, "", seed=3, offset_mm=off, shape=shape,
+                                 hole_fraction=0.0)
+    part = b.component("R1")
+    hw = part.body_width_mm / 2
+    inner = min(float(np.min(np.abs(part.to_local(j.polygon_mm)[:, 0]))) for j in part.joints)
+    web = part.to_board(np.array([[-inner, hw + 0.10], [inner, hw + 0.10],
+                                  [inner, hw + 0.26], [-inner, hw + 0.26]]))
+    m = placed_mask(s, labels, web)
+    rel = np.array(s.reliable) & ~m
+    aif = np.array(s.aif)
+    if glint:
+        aif[m] = 255
+    s = dataclasses.replace(s, reliable=rel, aif=aif)
+    got = {j.id: j for j in inspect_placed(s, b, labels).joints}
+    for jid in ("R1.1", "R1.2"):
+        assert got[jid].verdict == verdict, (jid, got[jid].reason)
+        if glint:
+            assert "possible bridge" in got[jid].reason
+            assert "clipped white" in got[jid].reason
+
+
 def test_a_body_seen_at_one_end_only_is_placed_from_that_end():
     """A 1.0 x 0.5 mm body whose middle and left end are unmeasured: its blob spans
     0.1 .. 0.5 mm. Where the 3 px beyond its right end read board level, the body is

@@ -308,7 +308,7 @@ def test_a_gullwing_heel_is_judged_on_its_heel_fit_whatever_the_solder_area_cove
     """A gull-wing joint whose max is the heel meniscus fitted to enough reliable foot
     pixels, with its side region measured and agreeing, is judged at 30 % solder-area
     coverage: in the band it passes (the reason says what it was judged on), above it is
-    excess.
+    excess (when the side strip's estimate agrees on both of the band's limits).
     Without the fit (a foot percentile), without the side reading, or under half the
     coverage rule's fraction it stays unreliable."""
     from smdinspect.inspect._measure import HEEL_FIT_MIN_PIXELS
@@ -324,22 +324,30 @@ def test_a_gullwing_heel_is_judged_on_its_heel_fit_whatever_the_solder_area_cove
     nominal = lead_top_mm(u1)
 
     def judge(*, max_mm=inside, fraction=0.3, heel_n=4 * HEEL_FIT_MIN_PIXELS, side_mm=0.14,
-              lead_mm=nominal, sparse_n=0, side_level_mm=NAN):
+              lead_mm=nominal, sparse_n=0, side_level_mm=NAN, glint=NAN):
         m = JointMeasurement(j.id, (0.0, 0.0), 400, fraction, max_mm=max_mm, u_max_mm=0.005,
                              max_method="foot", heel_fit_n=heel_n, side_mm=side_mm,
                              side_level_mm=side_level_mm,
                              foot_reliable_fraction=fraction, lead_mm=lead_mm, lead_n=5,
-                             gap_sparse_mm=0.0, gap_sparse_n=sparse_n)
+                             gap_sparse_mm=0.0, gap_sparse_n=sparse_n, gap_glint=glint,
+                             gap_glint_neighbour="U1.2")
         return judge_joint(j, u1, m, body, InspectConfig())
 
     ok = judge()
     assert ok.verdict is Verdict.OK and "heel meniscus over 80 reliable foot pixels" in ok.reason
-    assert judge(max_mm=j.max_height_mm + 0.1).verdict is Verdict.EXCESS
+    above = j.max_height_mm + 0.1
+    assert judge(max_mm=above, side_mm=0.5 * above).verdict is Verdict.EXCESS
     assert judge(max_mm=j.min_height_mm - 0.05, side_mm=0.05).verdict is Verdict.INSUFFICIENT
     # the side estimate (0.06 / 0.5 mm) below the minimum: a heel in the band is not a pass
     assert judge(side_mm=0.06).verdict is Verdict.UNRELIABLE
-    # a gap to a neighbour too sparsely measured to read: a bridge would go unchecked
-    assert judge(sparse_n=160).verdict is Verdict.UNRELIABLE
+    # ... nor one in the band a heel above the maximum (a fit overshooting on few pixels)
+    assert judge(max_mm=above).verdict is Verdict.UNRELIABLE
+    # a gap to a neighbour too sparsely measured to read each path is read on its pooled
+    # pixels (board level here); one whose path glints from foot to foot is not read
+    assert judge(sparse_n=160).verdict is Verdict.OK
+    assert judge(sparse_n=160, glint=0.8).verdict is Verdict.UNRELIABLE
+    glinting = judge(glint=0.8)  # a glinting path beside paths that read board level
+    assert glinting.verdict is Verdict.UNRELIABLE and "clipped white" in glinting.reason
     assert judge(heel_n=0).verdict is Verdict.UNRELIABLE               # a foot percentile only
     assert judge(side_mm=float("nan")).verdict is Verdict.UNRELIABLE   # dry foot not testable
     assert judge(fraction=0.15).verdict is Verdict.UNRELIABLE          # < half of 40 %
