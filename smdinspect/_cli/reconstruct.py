@@ -124,6 +124,10 @@ def register(sub: argparse._SubParsersAction) -> None:
                         "sigma_filled_mm.tiff, filled.png, field.png, height.png, reason.png, "
                         "view3d.png, cloud.ply, mesh.ply, mesh.stl; summary.json is always "
                         "written")
+    p.add_argument("--cloud-filled", action="store_true",
+                   help="cloud.ply also holds the filled points of the dense surface (where "
+                        "no height was measured), each with filled = 1 and sigma_filled, the "
+                        "fill's uncertainty (mm); not with --keep-unreliable")
     add_calibration_argument(p, "to the heights (and its pixel size taken when the stack "
                                 "has none)")
     p.set_defaults(func=run)
@@ -136,7 +140,7 @@ def run(args: argparse.Namespace) -> int:
     from ..calibrate import apply_calibration_file
     from ..cli import progress_callback
     from ..sff import reconstruct, write_reconstruction
-    from ..sff._export import RECONSTRUCTION_OUTPUTS
+    from ..sff._export import CLOUD_EXCLUSIVE, RECONSTRUCTION_OUTPUTS
     from ..errors import InputError
     from ..stack import open_stack
     from .study import resolve_auto_operator
@@ -147,6 +151,8 @@ def run(args: argparse.Namespace) -> int:
     if unknown:
         raise InputError(f"--outputs: unknown {', '.join(unknown)}; choose from "
                          f"{', '.join(RECONSTRUCTION_OUTPUTS)} (or all)")
+    if args.cloud_filled and args.keep_unreliable:
+        raise InputError(CLOUD_EXCLUSIVE)
     check_calibration_argument(args)
     stack = open_stack(args.stack, step_mm=args.step_mm, pixel_size_mm=args.pixel_size_mm,
                        z_from_name=args.z_from_name)
@@ -159,7 +165,8 @@ def run(args: argparse.Namespace) -> int:
         surface = apply_calibration_file(surface, args.calibration)
         log.info("writing the height maps, previews, cloud and mesh to %s", args.out)
         write_reconstruction(surface, tmp, keep_unreliable=args.keep_unreliable,
-                             outputs=outputs, extra_summary=auto and {"operator_auto": auto})
+                             cloud_filled=args.cloud_filled, outputs=outputs,
+                             extra_summary=auto and {"operator_auto": auto})
     if not surface.reliable.any():
         raise nothing_measured(len(stack), args.out)
     h = surface.height_mm[surface.reliable]

@@ -75,26 +75,53 @@ SERIAL_WRITE_PIXELS = 8_000_000
 CLOUD_CHUNK = 1 << 20
 
 
-def write_point_cloud(surface: Surface, path: str | Path, *, keep_unreliable: bool = False) -> Path:
+#: The error of a cloud asked for both extra kinds of points.
+CLOUD_EXCLUSIVE = ("cloud.ply holds either the unreliable readings (--keep-unreliable) or "
+                   "the filled surface (--cloud-filled), not both")
+
+
+def write_point_cloud(surface: Surface, path: str | Path, *, keep_unreliable: bool = False,
+                      filled: bool = False) -> Path:
     """Write ``cloud.ply``: binary little-endian PLY with float x, y, z (mm), uchar
     red/green/blue, float confidence and float precision (the height's 1σ random error
     in mm, NaN where unknown: :attr:`Surface.precision_mm`) per vertex (read by Open3D,
     trimesh, MeshLab, CloudCompare). Written with plyfile: importing Open3D only to write would cost more
     than the write. The points are those of :meth:`Surface.points`, built here straight
-    into the file's float32/uint8 record (no float64 or full-image float copies)."""
+    into the file's float32/uint8 record (no float64 or full-image float copies).
+
+    ``filled``: the dense surface's filled points too (:attr:`Surface.dense`, inside the
+    field every frame sees), each vertex with a uchar ``filled`` (1: its height was
+    filled in, not measured) and a float ``sigma_filled`` (the fill's uncertainty in mm,
+    0 where measured); a filled point's confidence is 0 and its precision NaN. Not with
+    ``keep_unreliable`` (whose extra points carry their own, unreliable readings)."""
+    if filled and keep_unreliable:
+        raise InputError(CLOUD_EXCLUSIVE)
     plyfile = _require("plyfile")
     h, w = surface.shape
-    mask = None if keep_unreliable else surface.reliable
-    index = np.arange(h * w) if mask is None else np.flatnonzero(mask)
-    vertex = np.empty(len(index), dtype=[("x", "<f4"), ("y", "<f4"), ("z", "<f4"), ("red", "u1"),
-                                         ("green", "u1"), ("blue", "u1"), ("confidence", "<f4"),
-                                         ("precision", "<f4")])
+    z_plane, conf_plane, fill_flag, fill_sigma = surface.height_mm, surface.confidence, None, None
+    if filled:
+        z_plane, fill_flag, fill_sigma = surface.dense
+        fill_flag = fill_flag & ~surface.reliable  # the fill keeps every measured height
+        keep = surface.reliable | (fill_flag & surface.field & np.isfinite(z_plane))
+        fill_flag = fill_flag & keep
+        conf_plane = np.where(fill_flag, np.float32(0), surface.confidence)
+        index = np.flatnonzero(keep)
+    else:
+        index = np.arange(h * w) if keep_unreliable else np.flatnonzero(surface.reliable)
+    fields = [("x", "<f4"), ("y", "<f4"), ("z", "<f4"), ("red", "u1"), ("green", "u1"),
+              ("blue", "u1"), ("confidence", "<f4"), ("precision", "<f4")]
+    if filled:
+        fields += [("filled", "u1"), ("sigma_filled", "<f4")]
+    vertex = np.empty(len(index), dtype=fields)
     p = 1.0 if surface.pixel_size_mm is None else float(surface.pixel_size_mm)
-    planes = [("z", surface.height_mm), ("confidence", surface.confidence)]
+    planes = [("z", z_plane), ("confidence", conf_plane)]
     if surface.precision_mm is not None:
-        planes.append(("precision", surface.precision_mm))
+        planes.append(("precision", surface.precision_mm if fill_flag is None
+                       else np.where(fill_flag, np.float32(np.nan), surface.precision_mm)))
     else:
         vertex["precision"] = np.nan
+    if filled:
+        planes += [("filled", fill_flag), ("sigma_filled", fill_sigma)]
     for a in range(0, len(index), CLOUD_CHUNK):  # chunks: no full-length temporaries
         at = index[a:a + CLOUD_CHUNK]
         part = vertex[a:a + CLOUD_CHUNK]
@@ -287,6 +314,7 @@ def write_reconstruction(
     out_dir: str | Path,
     *,
     keep_unreliable: bool = False,
+    cloud_filled: bool = False,
     previews: bool = True,
     extra_summary: dict[str, Any] | None = None,
     outputs: Collection[str] | None = None,
@@ -307,7 +335,8 @@ def write_reconstruction(
     (logged); the maps and previews show what the stack holds.
 
     ``outputs`` names the files to write (from :data:`RECONSTRUCTION_OUTPUTS`);
-    ``summary.json`` is always written.
+    ``summary.json`` is always written. ``cloud_filled``: ``cloud.ply`` also holds the
+    dense surface's filled points, flagged (:func:`write_point_cloud`'s ``filled``).
 
     Returns
     -------
@@ -321,6 +350,8 @@ def write_reconstruction(
     if unknown:
         raise InputError(f"unknown output {', '.join(unknown)}; choose from "
                          f"{', '.join(RECONSTRUCTION_OUTPUTS)}")
+    if cloud_filled and keep_unreliable:
+        raise InputError(CLOUD_EXCLUSIVE)
     if not previews:
         wanted -= {"height.png", "reason.png", "view3d.png"}
     if surface.reason is None:
@@ -392,8 +423,9 @@ def write_reconstruction(
             out / "sigma_filled_mm.tiff", np.asarray(dense()[2], f32))),
         (("filled.png",), lambda: _atomic.write_image(out / "filled.png", _mask_png(dense()[1]))),
         # last: its point record would add to the dense fill's planes if the two overlapped
-        (("cloud.ply",), lambda: write_point_cloud(surface, out / "cloud.ply",
-                                                   keep_unreliable=keep_unreliable)),
+        (("cloud.ply",), lambda: write_point_cloud(
+            surface, out / "cloud.ply", keep_unreliable=keep_unreliable,
+            filled=cloud_filled and dense() is not None)),
         (("summary.json",), height_stats),
     ]
     here = [(names, fn) for names, fn in here if wanted & set(names)]
@@ -420,8 +452,9 @@ def write_reconstruction(
         "coverage": round(surface.coverage, 4),
         "height_mm": stats["height_mm"],
         "precision_mm": _precision_summary(surface),
-        "cloud_points": 0 if not measured else int(surface.reliable.sum() if not keep_unreliable
-                                                   else surface.reliable.size),
+        "cloud_points": 0 if not measured else _cloud_points(surface, keep_unreliable,
+                                                             cloud_filled),
+        "cloud_filled": bool(cloud_filled),
         "mesh_faces": mesh_faces,
         "keep_unreliable": keep_unreliable,
         **surface.meta,
@@ -431,6 +464,17 @@ def write_reconstruction(
     summary["files"] = sorted(list(paths) + ["summary.json"])
     paths["summary.json"] = _atomic.write_json(out / "summary.json", summary)
     return paths
+
+
+def _cloud_points(surface: Surface, keep_unreliable: bool, filled: bool) -> int:
+    """How many points ``cloud.ply`` holds (see :func:`write_point_cloud`)."""
+    if keep_unreliable:
+        return int(surface.reliable.size)
+    if filled:
+        z, flag, _ = surface.dense
+        return int(np.count_nonzero(surface.reliable
+                                    | (flag & surface.field & np.isfinite(z))))
+    return int(surface.reliable.sum())
 
 
 def _precision_plane(surface: Surface) -> np.ndarray:

@@ -158,6 +158,34 @@ def test_outputs_chooses_the_files_written(tmp_path, capsys):
     assert sorted(p.name for p in out.iterdir()) == ["cloud.ply", "height_mm.tiff", "summary.json"]
 
 
+def test_cloud_filled_adds_the_filled_points_flagged(cone_stack, tmp_path, capsys):
+    """``--cloud-filled``: cloud.ply holds every field pixel, the filled ones flagged and at
+    the dense surface's height (height_filled_mm.tiff); with --keep-unreliable it is a
+    one-line error (exit 2) and the previous outputs stay."""
+    import plyfile
+
+    root, _ = cone_stack
+    out = tmp_path / "out"
+    assert main(["-q", "reconstruct", str(root), "--out", str(out), "--cloud-filled",
+                 "--outputs", "cloud.ply,height_filled_mm.tiff,filled.png,field.png"]) == 0
+    v = plyfile.PlyData.read(str(out / "cloud.ply"))["vertex"]
+    dense = tifffile.imread(out / "height_filled_mm.tiff")
+    filled = cv2.imread(str(out / "filled.png"), cv2.IMREAD_GRAYSCALE) > 0
+    field = cv2.imread(str(out / "field.png"), cv2.IMREAD_GRAYSCALE) > 0
+    assert len(v) == int(((~filled) | field).sum())
+    rows = np.round(127 - v["y"] / 0.015).astype(int)
+    cols = np.round(v["x"] / 0.015).astype(int)
+    assert np.array_equal(v["filled"].astype(bool), filled[rows, cols])
+    assert np.array_equal(v["z"], dense[rows, cols])
+    assert 0 < v["filled"].sum() < len(v)
+    before = sorted(p.name for p in out.iterdir())
+    assert main(["-q", "reconstruct", str(root), "--out", str(out), "--cloud-filled",
+                 "--keep-unreliable"]) == 2
+    err = capsys.readouterr().err.strip()
+    assert len(err.splitlines()) == 1 and "not both" in err
+    assert sorted(p.name for p in out.iterdir()) == before
+
+
 def test_coarse_levels_option_reaches_the_reconstruction(cone_stack, tmp_path):
     root, _ = cone_stack
     out = tmp_path / "o"

@@ -106,6 +106,57 @@ def test_cloud_ply_points_and_colours(tmp_path):
     assert np.isnan(v["precision"]).all()  # a surface without a precision: unknown
 
 
+def test_cloud_ply_with_the_filled_surface_flags_every_filled_point(tmp_path):
+    """``filled``: the field's unmeasured pixels join the cloud at the dense surface's
+    height, each flagged filled = 1 with its fill uncertainty, confidence 0 and precision
+    NaN; measured points keep their reading (filled = 0, sigma_filled 0). Outside the
+    field nothing is added. Open3D reads the file (its x, y, z); by default the cloud is
+    the measured points alone, and with the unreliable readings as well it is refused."""
+    import dataclasses
+    import json
+
+    import open3d as o3d
+    import plyfile
+
+    from smdinspect.errors import InputError
+
+    height = 0.3 + 0.2 * _ramp(40, 50)
+    reliable = np.zeros(height.shape, bool)
+    reliable[::3] = True
+    field = np.ones(height.shape, bool)
+    field[:, :4] = False
+    surface = dataclasses.replace(_surface(height, reliable), field=field,
+                                  precision_mm=np.full(height.shape, 0.004, np.float32))
+    _export.write_point_cloud(surface, tmp_path / "c.ply", filled=True)
+    v = plyfile.PlyData.read(str(tmp_path / "c.ply"))["vertex"]
+    keep = reliable | field
+    rows, cols = np.nonzero(keep)
+    assert len(v) == keep.sum()
+    assert np.allclose(v["x"], cols * 0.02) and np.allclose(v["y"], (39 - rows) * 0.02)
+    flag = v["filled"].astype(bool)
+    assert np.array_equal(flag, ~reliable[rows, cols])
+    assert np.array_equal(v["z"][~flag], height[rows, cols][~flag])
+    dense_z, _, dense_sigma = surface.dense
+    assert np.array_equal(v["z"][flag], dense_z[rows, cols][flag])  # the dense surface's
+    assert np.array_equal(v["sigma_filled"][flag], dense_sigma[rows, cols][flag])
+    assert (v["sigma_filled"][~flag] == 0).all() and (v["sigma_filled"][flag] > 0).all()
+    assert (v["confidence"][flag] == 0).all() and np.isnan(v["precision"][flag]).all()
+    assert np.allclose(v["precision"][~flag], 0.004)
+    pc = o3d.io.read_point_cloud(str(tmp_path / "c.ply"))
+    assert len(pc.points) == keep.sum()
+
+    _export.write_point_cloud(surface, tmp_path / "m.ply")
+    plain = plyfile.PlyData.read(str(tmp_path / "m.ply"))["vertex"]
+    assert len(plain) == reliable.sum() and "filled" not in plain.data.dtype.names
+    with pytest.raises(InputError, match="not both"):
+        _export.write_point_cloud(surface, tmp_path / "x.ply", filled=True, keep_unreliable=True)
+    assert not (tmp_path / "x.ply").exists()
+    paths = _export.write_reconstruction(surface, tmp_path / "out", cloud_filled=True,
+                                         outputs=["cloud.ply"])
+    summary = json.loads(paths["summary.json"].read_text())
+    assert summary["cloud_points"] == keep.sum() and summary["cloud_filled"] is True
+
+
 # ---------------------------------------------------------------------------- height.png
 
 
