@@ -1045,24 +1045,17 @@ def _record_unread(joints, a: str, b: str, z: float, pooled: np.ndarray,
         joints[jid].gap_unread = joints[jid].gap_unread or other
 
 
-def _record_glint(joints, a: str, b: str, share: float) -> None:
-    """Keep the largest clipped share of a gap path on both joints."""
-    if not np.isfinite(share):
+def _record_larger(joints, a: str, b: str, value: float, name: str, neighbour: str) -> None:
+    """Keep ``value`` as field ``name`` of both joints, the other one as ``neighbour``,
+    where it is larger than what they hold: a gap's glint (``gap_glint``) or a level read
+    where a body's edge blends into the heights (``gap_blend_mm``, a possible web)."""
+    if not np.isfinite(value):
         return
     for jid, other in ((a, b), (b, a)):
         m = joints[jid]
-        if not share <= m.gap_glint:
-            m.gap_glint, m.gap_glint_neighbour = share, other
-
-
-def _record_blend(joints, a: str, b: str, z: float) -> None:
-    """Keep a level read where a body's edge blends into the heights (a possible web)."""
-    if not np.isfinite(z):
-        return
-    for jid, other in ((a, b), (b, a)):
-        m = joints[jid]
-        if not z <= m.gap_blend_mm:
-            m.gap_blend_mm, m.gap_blend_neighbour = z, other
+        if not value <= getattr(m, name):
+            setattr(m, name, value)
+            setattr(m, neighbour, other)
 
 
 def _measure_gaps(comp, win: _Win, config: InspectConfig, joints: dict[str, JointMeasurement],
@@ -1109,19 +1102,19 @@ def _measure_gaps(comp, win: _Win, config: InspectConfig, joints: dict[str, Join
             z_out, f, sparse, open_share, glint = _sample_paths(win, comp, xs, ys, body_grown,
                                                                 config)
             _record(joints, a.id, b.id, z_out, f, np.empty(0), config)
-            _record_glint(joints, a.id, b.id, glint)
+            _record_larger(joints, a.id, b.id, glint, "gap_glint", "gap_glint_neighbour")
             # the band next to the body (nominal edge to body_margin_mm), where a web
             # that wets the body's side stands; the side's sparse paths pooled
             ys = side * (hw + np.arange(0.0, mg - 1e-9, p))
             below = body_top_mm - LEVEL_PATH_BODY_GAP_MM
             z, f, band, _, glint = _sample_paths(win, comp, xs, ys, hug, config, level=True,
                                                  below_mm=below)
-            _record_glint(joints, a.id, b.id, glint)
+            _record_larger(joints, a.id, b.id, glint, "gap_glint", "gap_glint_neighbour")
             if mixed.any():
                 # within the mixing reach of the body's edge a level may be that edge
                 # blended with the board: evidence of a possible web, not a measurement;
                 # only the band beyond the reach measures one
-                _record_blend(joints, a.id, b.id, z)
+                _record_larger(joints, a.id, b.id, z, "gap_blend_mm", "gap_blend_neighbour")
                 z, f, _, _, _ = _sample_paths(win, comp, xs, ys, hug | mixed, config,
                                               level=True, below_mm=below)
             pooled = np.concatenate([sparse, band])
@@ -1161,7 +1154,7 @@ def _measure_gaps(comp, win: _Win, config: InspectConfig, joints: dict[str, Join
                    + acr_b[None, None, :] * vs[None, :, None])
             z, f, sparse, open_share, glint = _sample_board(win, pts, body_grown, config)
             _record(joints, a.id, b.id, z, f, sparse, config)
-            _record_glint(joints, a.id, b.id, glint)
+            _record_larger(joints, a.id, b.id, glint, "gap_glint", "gap_glint_neighbour")
             _record_unread(joints, a.id, b.id, z, sparse, open_share)
 
 

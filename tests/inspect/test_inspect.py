@@ -320,6 +320,21 @@ def test_a_cap_seen_in_a_few_scattered_pixels_is_read_at_its_median():
     assert got["C1.2"].verdict != Verdict.EXCESS, got["C1.2"].reason
 
 
+def _r1_band_beside_body(near_mm: float, far_mm: float):
+    """The demo board's R1 on a crop of true heights (no holes), and the pixels of the
+    band beside its body's long side, ``near_mm`` .. ``far_mm`` out from the body, between
+    its pads' inner edges: ``(surface, labels, board, band mask)``."""
+    board, off, shape = part_crop(DEMO, "R1")
+    s, labels, b = truth_surface(board, "", seed=3, offset_mm=off, shape=shape,
+                                 hole_fraction=0.0)
+    part = b.component("R1")
+    hw = part.body_width_mm / 2
+    inner = min(float(np.min(np.abs(part.to_local(j.polygon_mm)[:, 0]))) for j in part.joints)
+    band = part.to_board(np.array([[-inner, hw + near_mm], [inner, hw + near_mm],
+                                   [inner, hw + far_mm], [-inner, hw + far_mm]]))
+    return s, labels, b, placed_mask(s, labels, band)
+
+
 @pytest.mark.parametrize("window_px, verdict", [(5, Verdict.UNRELIABLE), (0, Verdict.BRIDGE)])
 def test_a_level_band_within_the_window_reach_of_a_body_is_a_possible_bridge(window_px, verdict):
     """A level path 40-60 µm beside a chip's body, between its pads, at 0.25 mm: a web
@@ -329,15 +344,7 @@ def test_a_level_band_within_the_window_reach_of_a_body_is_a_possible_bridge(win
     a bridge."""
     import dataclasses
 
-    board, off, shape = part_crop(DEMO, "R1")
-    s, labels, b = truth_surface(board, "", seed=3, offset_mm=off, shape=shape,
-                                 hole_fraction=0.0)
-    part = b.component("R1")
-    hl, hw = part.body_length_mm / 2, part.body_width_mm / 2
-    inner = min(float(np.min(np.abs(part.to_local(j.polygon_mm)[:, 0]))) for j in part.joints)
-    band = part.to_board(np.array([[-inner, hw + 0.04], [inner, hw + 0.04],
-                                   [inner, hw + 0.06], [-inner, hw + 0.06]]))
-    m = placed_mask(s, labels, band)
+    s, labels, b, m = _r1_band_beside_body(0.04, 0.06)
     h = np.array(s.height_mm)
     h[m] = 0.25
     s = dataclasses.replace(s, height_mm=h, meta={"config": {"window_px": window_px}})
@@ -359,15 +366,8 @@ def test_a_gap_not_measured_at_all_does_not_pass_a_joint(unreliable_to_mm, verdi
     they pass."""
     import dataclasses
 
-    board, off, shape = part_crop(DEMO, "R1")
-    s, labels, b = truth_surface(board, "", seed=3, offset_mm=off, shape=shape,
-                                 hole_fraction=0.0)
-    part = b.component("R1")
-    hw = part.body_width_mm / 2
-    inner = min(float(np.min(np.abs(part.to_local(j.polygon_mm)[:, 0]))) for j in part.joints)
-    band = part.to_board(np.array([[-inner, hw], [inner, hw], [inner, hw + unreliable_to_mm],
-                                   [-inner, hw + unreliable_to_mm]]))
-    rel = np.array(s.reliable) & ~placed_mask(s, labels, band)
+    s, labels, b, band = _r1_band_beside_body(0.0, unreliable_to_mm)
+    rel = np.array(s.reliable) & ~band
     got = {j.id: j for j in inspect_placed(dataclasses.replace(s, reliable=rel), b,
                                            labels).joints}
     for jid in ("R1.1", "R1.2"):
@@ -387,15 +387,7 @@ def test_a_gap_that_glints_from_pad_to_pad_does_not_pass_a_joint(glint, verdict)
     gap read on the board beside it, and the joints pass."""
     import dataclasses
 
-    board, off, shape = part_crop(DEMO, "R1")
-    s, labels, b = truth_surface(board, "", seed=3, offset_mm=off, shape=shape,
-                                 hole_fraction=0.0)
-    part = b.component("R1")
-    hw = part.body_width_mm / 2
-    inner = min(float(np.min(np.abs(part.to_local(j.polygon_mm)[:, 0]))) for j in part.joints)
-    web = part.to_board(np.array([[-inner, hw + 0.10], [inner, hw + 0.10],
-                                  [inner, hw + 0.26], [-inner, hw + 0.26]]))
-    m = placed_mask(s, labels, web)
+    s, labels, b, m = _r1_band_beside_body(0.10, 0.26)
     rel = np.array(s.reliable) & ~m
     aif = np.array(s.aif)
     if glint:
