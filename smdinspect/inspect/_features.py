@@ -202,15 +202,30 @@ def _hull_area_px(pts: np.ndarray) -> float:
 
 
 def _fiducial_pair(fid, aif_gray, T, p) -> FeaturePair | None:
+    H, W = aif_gray.shape
+    c = world_to_pixel(apply2d(T, np.array([[fid.x_mm, fid.y_mm]])), shape=(H, W), pixel_size_mm=p)[0]
+    found = _circle_edge(aif_gray, c, fid.diameter_mm / 2 / p)
+    if found is None:
+        return None
+    x, y = pixel_to_world(np.array([found]), shape=(H, W), pixel_size_mm=p)[0]
+    return FeaturePair("fiducial", fid.id, (fid.x_mm, fid.y_mm), (float(x), float(y)),
+                       weight=FIDUCIAL_WEIGHT)
+
+
+def _circle_edge(aif_gray, c, r: float) -> tuple[float, float] | None:
+    """Centre (column, row) of the circle of radius ``r`` px near pixel ``c``: the
+    strongest edge of one polarity along 72 rays from ``c`` (0.5 r to 1.5 r, or to 1.25 r
+    by the image's border), fitted by a circle (three passes dropping the outliers);
+    None unless its radius is within 20 % of ``r`` and its edge points lie within
+    0.75 px RMS of it."""
     import cv2
 
     H, W = aif_gray.shape
-    c = world_to_pixel(apply2d(T, np.array([[fid.x_mm, fid.y_mm]])), shape=(H, W), pixel_size_mm=p)[0]
-    r = fid.diameter_mm / 2 / p
-    if r < 3 or not (r * 1.6 < c[0] < W - 1 - r * 1.6 and r * 1.6 < c[1] < H - 1 - r * 1.6):
+    reach = min(1.5 * r, c[0] - 1.0, W - 2.0 - c[0], c[1] - 1.0, H - 2.0 - c[1])
+    if r < 3 or reach < 1.25 * r:
         return None
     n_rays = 72
-    radii = np.arange(0.5 * r, 1.5 * r, 0.25)
+    radii = np.arange(0.5 * r, reach, 0.25)
     ang = np.linspace(0, 2 * np.pi, n_rays, endpoint=False)
     xs = (c[0] + np.cos(ang)[:, None] * radii[None, :]).astype(np.float32)
     ys = (c[1] + np.sin(ang)[:, None] * radii[None, :]).astype(np.float32)
@@ -249,9 +264,39 @@ def _fiducial_pair(fid, aif_gray, T, p) -> FeaturePair | None:
         return None
     if float(np.sqrt(np.mean((np.hypot(ex[keep] - cx, ey[keep] - cy) - rad) ** 2))) > 0.75:
         return None
-    x, y = pixel_to_world(np.array([[cx, cy]]), shape=(H, W), pixel_size_mm=p)[0]
-    return FeaturePair("fiducial", fid.id, (fid.x_mm, fid.y_mm), (float(x), float(y)),
-                       weight=FIDUCIAL_WEIGHT)
+    return float(cx), float(cy)
+
+
+#: Circles the global fiducial search keeps at most (the strongest Hough votes).
+MAX_FIDUCIAL_CANDIDATES = 40
+
+
+def fiducial_candidates(aif, board, p: float) -> np.ndarray:
+    """(N, 2) world x, y (mm) of the round marks in the all-in-focus image that have a
+    fiducial's diameter, wherever they lie: circles found by OpenCV's Hough transform
+    (``HOUGH_GRADIENT_ALT``, radius within 25 % of the fiducial's), each confirmed by
+    :func:`_circle_edge` (an edge of one polarity all round, radius within 20 %)."""
+    import cv2
+
+    out = []
+    if aif is None or not board.fiducials:
+        return np.empty((0, 2))
+    gray = _gray(aif)
+    g8 = np.clip(gray * 255.0, 0, 255).astype(np.uint8)
+    for r in sorted({f.diameter_mm / 2.0 / p for f in board.fiducials}):
+        if r < 3:
+            continue
+        blur = cv2.GaussianBlur(g8, (0, 0), max(1.0, r / 10.0))
+        circles = cv2.HoughCircles(blur, cv2.HOUGH_GRADIENT_ALT, dp=1.5, minDist=1.5 * r,
+                                   param1=100, param2=0.6, minRadius=int(0.75 * r),
+                                   maxRadius=int(math.ceil(1.25 * r)))
+        for x, y, _ in ([] if circles is None else circles[0][:MAX_FIDUCIAL_CANDIDATES]):
+            found = _circle_edge(gray, np.array([x, y]), r)
+            if found is not None:
+                out.append(found)
+    if not out:
+        return np.empty((0, 2))
+    return pixel_to_world(np.array(out), shape=gray.shape, pixel_size_mm=p)
 
 
 def _gray(aif: np.ndarray) -> np.ndarray:
@@ -529,6 +574,74 @@ def _axis_turns_with(comp, blob: _Blob, rot_deg: float, shapes=None) -> bool:
 def _angle_diff(a: float, b: float, period: float = 180.0) -> float:
     d = (a - b) % period
     return min(d, period - d)
+
+
+def global_fiducial_pose(aif, board, p, *, T_nominal: np.ndarray, max_rotation_deg: float,
+                         max_offset_mm: float, tol_mm: float = 0.05):
+    """Placement of ``board`` from its fiducials alone, wherever the board lies in the image.
+
+    Every two marks of :func:`fiducial_candidates` as far apart as two of the board's
+    fiducials (within ``2 tol_mm``) propose a rigid placement, both ways round;
+    placements turned more than ``max_rotation_deg`` or moved more than
+    ``max_offset_mm`` from ``T_nominal`` (with one body-search distance to spare) are
+    dropped. A placement's support is the number of fiducials with a mark within
+    ``tol_mm`` of where it puts them; the best-supported one (then the smallest summed
+    residual) is refitted to them by least squares. Fiducials are the board's own
+    reference marks: they locate it where its parts cannot (the largest part missing,
+    the others shifted, tombstoned or cut by the field edge).
+
+    Returns
+    -------
+    T : (3, 3) float64 or None
+        None when fewer than two fiducials agree.
+    info : dict
+        ``support`` (fiducial ids), ``rms_mm``, ``candidates`` (marks found),
+        ``hypotheses`` (placements scored), or ``reason``.
+    """
+    fids = list(board.fiducials)
+    marks = fiducial_candidates(aif, board, p) if len(fids) >= 2 else np.empty((0, 2))
+    info: dict = {"candidates": int(len(marks)), "hypotheses": 0}
+    if len(marks) < 2:
+        info["reason"] = f"{len(marks)} fiducial-sized marks"
+        return None, info
+    ref = np.array([[f.x_mm, f.y_mm] for f in fids], np.float64)
+    rot0 = math.degrees(math.atan2(T_nominal[1, 0], T_nominal[0, 0]))
+    centre = np.array(board.size_mm, np.float64) / 2.0
+    c_nom = apply2d(T_nominal, centre[None])[0]
+    best, best_T = (0, 0.0, []), None
+    for a in range(len(fids)):
+        for b in range(len(fids)):
+            if a == b:
+                continue
+            d_ref = float(np.hypot(*(ref[a] - ref[b])))
+            for i in range(len(marks)):
+                for j in range(len(marks)):
+                    if i == j or abs(float(np.hypot(*(marks[i] - marks[j]))) - d_ref) > 2 * tol_mm:
+                        continue
+                    T = fit_rigid2d(ref[[a, b]], marks[[i, j]])
+                    rot = math.degrees(math.atan2(T[1, 0], T[0, 0]))
+                    if _angle_diff(rot, rot0, 360.0) > max_rotation_deg + 1.0:
+                        continue
+                    if float(np.hypot(*(apply2d(T, centre[None])[0] - c_nom))) > \
+                            max_offset_mm + BODY_SEARCH_MM:
+                        continue
+                    info["hypotheses"] += 1
+                    r = np.hypot(*(apply2d(T, ref)[:, None, :] - marks[None, :, :]).transpose(2, 0, 1))
+                    near = r.min(axis=1)
+                    keep = [k for k in range(len(fids)) if near[k] <= tol_mm]
+                    score = (len(keep), -float(near[keep].sum()), keep)
+                    if score[:2] > best[:2]:
+                        best, best_T = score, T
+    if best_T is None or best[0] < 2:
+        info["reason"] = "no two fiducials agree"
+        return None, info
+    keep = best[2]
+    r = np.hypot(*(apply2d(best_T, ref[keep])[:, None, :] - marks[None, :, :]).transpose(2, 0, 1))
+    dst = marks[np.argmin(r, axis=1)]
+    T = fit_rigid2d(ref[keep], dst)
+    rms = float(np.sqrt(np.mean(np.sum((apply2d(T, ref[keep]) - dst) ** 2, axis=1))))
+    info.update(support=[fids[k].id for k in keep], rms_mm=round(rms, 5))
+    return T, info
 
 
 def global_body_pose(height, reliable, board, p, *, T_nominal: np.ndarray,

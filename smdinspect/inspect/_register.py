@@ -53,6 +53,7 @@ from ._features import (
     CONSENSUS_MM,
     feature_pairs,
     global_body_pose,
+    global_fiducial_pose,
     refine_with_features,
 )
 from ._reference import Prism, reference_points, reference_prisms, render_reference
@@ -462,6 +463,8 @@ def register_board(
     if cfg.fine_features and initial is None:
         T, method = _prefer_body_layout(height, reliable, aif, board, p, cfg, T, method,
                                         centre_img - centre_board, meta)
+        T, method = _prefer_fiducial_layout(height, reliable, aif, board, p, cfg, T, method,
+                                            centre_img - centre_board, meta)
     ref_pts, ref_n = reference_points(board, spacing_mm=max(p, 0.04), seed=cfg.seed)
     meas = _measured_points(height, reliable, p, board, T, max_points=20000, seed=cfg.seed)
     fit0, rmse0 = _evaluate(meas, ref_pts, T, cfg.icp_distance_mm)
@@ -568,27 +571,50 @@ def _prefer_body_layout(height, reliable, aif, board, p, cfg, T, method, t_nomin
     reference is absent or changed (a missing or tombstoned part, a part cut by the
     field edge): its optimum then follows the remaining large shapes. Matching the
     measured body blobs to the reference layout (:func:`global_body_pose`) gives an
-    independent placement; each is refined by the local features, and the one under
-    which more bodies and fiducials lie where it puts them wins (ties: the better
-    fitness of the measured raised points). A board without two matching bodies keeps
-    the correlation's placement. Two bodies alone fit any placement exactly: one of
-    them biased (an excess fillet over its end) turns the board with it.
+    independent placement (see :func:`_prefer`). A board without two matching bodies
+    keeps the correlation's placement. Two bodies alone fit any placement exactly: one
+    of them biased (an excess fillet over its end) turns the board with it.
     """
-    T_nom = rigid2d(0.0, *t_nominal)
-    T_b, info = global_body_pose(height, reliable, board, p, T_nominal=T_nom,
+    T_b, info = global_body_pose(height, reliable, board, p, T_nominal=rigid2d(0.0, *t_nominal),
                                  max_rotation_deg=cfg.max_rotation_deg,
                                  max_offset_mm=cfg.max_offset_mm)
     meta["body_layout"] = info
     if T_b is None:
         return T, method
+    return _prefer(height, reliable, aif, board, p, cfg, T, method, T_b, "bodies", info, meta)
+
+
+def _prefer_fiducial_layout(height, reliable, aif, board, p, cfg, T, method, t_nominal, meta):
+    """Check the placement against one found from the fiducials alone
+    (:func:`global_fiducial_pose`, see :func:`_prefer`).
+
+    When the largest part is missing and the others are shifted, tombstoned or cut by
+    the field edge, neither the correlation nor the bodies' layout may find the board,
+    and the fiducials are then searched where a wrong placement puts them (tuning seed
+    demo 239: U1 missing, C2 shifted, R3 tombstoned, C1 and R2 cut, two fiducials in
+    view: not located)."""
+    T_f, info = global_fiducial_pose(aif, board, p, T_nominal=rigid2d(0.0, *t_nominal),
+                                     max_rotation_deg=cfg.max_rotation_deg,
+                                     max_offset_mm=cfg.max_offset_mm)
+    meta["fiducial_layout"] = info
+    if T_f is None:
+        return T, method
+    return _prefer(height, reliable, aif, board, p, cfg, T, method, T_f, "fiducials", info,
+                   meta)
+
+
+def _prefer(height, reliable, aif, board, p, cfg, T, method, T_b, name, info, meta):
+    """The placement ``T`` or the independent one ``T_b`` (found from ``name``): each is
+    refined by the local features, and the one under which more bodies and fiducials lie
+    where it puts them wins (ties: the better fitness of the measured raised points)."""
     if _moved_mm(T, T_b, board) <= CONSENSUS_MM:
         info["agrees"] = True
         return T, method
-    method_b = "bodies"
+    method_b = name
     pairs_b = feature_pairs(height, reliable, aif, board, T_b, p)
     T_bf, info_b = refine_with_features(pairs_b, T_b)
     if T_bf is not None and _moved_mm(T_b, T_bf, board) <= BODY_SEARCH_MM:
-        T_b, method_b = T_bf, "bodies+features"
+        T_b, method_b = T_bf, f"{name}+features"
         # the features again where the refined placement puts them (a fiducial missed
         # from the layout's placement is found now), and the fit on all of them
         pairs_b = feature_pairs(height, reliable, aif, board, T_b, p)
@@ -614,12 +640,12 @@ def _prefer_body_layout(height, reliable, aif, board, p, cfg, T, method, t_nomin
     if not better:
         return T, method
     info["kept"] = info["agrees"] = True
-    if method_b == "bodies+features":
+    if method_b.endswith("+features"):
         meta["features"] = info_b
     else:
         meta["features"] = {"used": ok_b, "rejected": [], "rms_mm": info.get("rms_mm")}
-    log.debug("placement from the body layout (%d features agree) replaces %s (%d)",
-              n_b, method, n_a)
+    log.debug("placement from the %s layout (%d features agree) replaces %s (%d)",
+              name, n_b, method, n_a)
     return T_b, method_b
 
 

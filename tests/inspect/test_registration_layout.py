@@ -5,7 +5,7 @@ import pytest
 
 from smdinspect.errors import BoardNotLocatedError
 from smdinspect.inspect import inspect_surface, load_board, register_board
-from smdinspect.inspect._features import global_body_pose
+from smdinspect.inspect._features import global_body_pose, global_fiducial_pose
 from smdinspect.inspect._geometry import apply2d, rigid2d
 from smdinspect.sff import Surface
 from smdinspect.synth._board_scene import board_scene, random_board_case, scene_kwargs
@@ -83,6 +83,62 @@ def test_body_layout_pose_needs_two_agreeing_bodies():
     T, info = global_body_pose(flat, surface.reliable, board, p, T_nominal=T_nom,
                                max_rotation_deg=6.0, max_offset_mm=3.0)
     assert T is None
+
+
+def test_fiducials_found_anywhere_locate_a_board_its_parts_cannot_place():
+    # Tuning case demo 239: the SOIC-8 missing, the 0402 shifted 0.31 mm, an 0603
+    # tombstoned, the 1206 and 0805 cut by the field edge; R1 the only whole body in
+    # place, two fiducials in view (one 1 px from the image's border). The correlation
+    # locks 3.5 mm off, no two bodies agree, and the fiducials were searched only where
+    # that placement put them: not located. Searched over the whole image they place
+    # the board, and R1 agrees.
+    case, reg, T_true = _registered_truth_case(DEMO, 239)
+    assert reg.converged, reg.reason
+    assert reg.method.startswith("fiducials"), reg.meta.get("fiducial_layout")
+    assert _corner_error_mm(reg.transform, T_true, case["board"]) < 0.01
+    assert reg.meta["fiducial_layout"]["support"] == ["FID1", "FID3"]
+    used = reg.meta["features"]["used"]
+    assert "body:R1" in used and "body:C2" in reg.meta["features"]["rejected"]
+
+
+def test_fiducial_pose_needs_two_marks_as_far_apart_as_two_fiducials():
+    """Bright discs of the fiducials' diameter drawn where a known placement puts the
+    board's three fiducials, with two distractor discs (one beside a fiducial, one
+    alone): the placement comes back to a few µm. With a single fiducial left, or its
+    partner moved 0.3 mm (no pair at the board's spacing), there is none."""
+    import cv2
+
+    board = load_board(DEMO)
+    p, shape = 0.02, (560, 600)
+    T_true = rigid2d(3.0, 0.6, 0.4)
+    T_nom = rigid2d(0.0, ((shape[1] - 1) * p - board.size_mm[0]) / 2,
+                    ((shape[0] - 1) * p - board.size_mm[1]) / 2)
+    fids = np.array([[f.x_mm, f.y_mm] for f in board.fiducials])
+    r_px = board.fiducials[0].diameter_mm / 2 / p
+
+    def image(marks_mm):
+        img = np.random.default_rng(0).normal(60, 4, shape).clip(0, 255).astype(np.uint8)
+        xy = np.asarray(marks_mm, float)
+        cols, rows = xy[:, 0] / p, (shape[0] - 1) - xy[:, 1] / p
+        for c, r in zip(cols, rows):
+            cv2.circle(img, (int(round(c * 16)), int(round(r * 16))), int(round(r_px * 16)),
+                       210, -1, lineType=cv2.LINE_AA, shift=4)
+        return np.repeat(img[:, :, None], 3, axis=2)
+
+    world = apply2d(T_true, fids)
+    distractors = [world[0] + [1.3, 0.9], world[1] + [-2.0, 3.0]]
+    T, info = global_fiducial_pose(image([*world, *distractors]), board, p, T_nominal=T_nom,
+                                   max_rotation_deg=6.0, max_offset_mm=3.0)
+    assert T is not None, info
+    assert info["support"] == ["FID1", "FID2", "FID3"] and info["candidates"] == 5
+    assert _corner_error_mm(T, T_true, board) < 0.01
+    T, info = global_fiducial_pose(image([world[0], *distractors]), board, p, T_nominal=T_nom,
+                                   max_rotation_deg=6.0, max_offset_mm=3.0)
+    assert T is None
+    moved = [world[0], world[1] + [0.3, 0.0]]
+    T, info = global_fiducial_pose(image(moved), board, p, T_nominal=T_nom,
+                                   max_rotation_deg=6.0, max_offset_mm=3.0)
+    assert T is None and info["reason"] == "no two fiducials agree"
 
 
 def test_the_wrong_board_is_still_not_located_with_the_layout_search():
