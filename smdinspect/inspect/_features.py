@@ -203,7 +203,8 @@ def _hull_area_px(pts: np.ndarray) -> float:
 
 def _fiducial_pair(fid, aif_gray, T, p) -> FeaturePair | None:
     H, W = aif_gray.shape
-    c = world_to_pixel(apply2d(T, np.array([[fid.x_mm, fid.y_mm]])), shape=(H, W), pixel_size_mm=p)[0]
+    c = world_to_pixel(apply2d(T, np.array([[fid.x_mm, fid.y_mm]])), shape=(H, W),
+                       pixel_size_mm=p)[0]
     found = _circle_edge(aif_gray, c, fid.diameter_mm / 2 / p)
     if found is None:
         return None
@@ -626,8 +627,7 @@ def global_fiducial_pose(aif, board, p, *, T_nominal: np.ndarray, max_rotation_d
                             max_offset_mm + BODY_SEARCH_MM:
                         continue
                     info["hypotheses"] += 1
-                    r = np.hypot(*(apply2d(T, ref)[:, None, :] - marks[None, :, :]).transpose(2, 0, 1))
-                    near = r.min(axis=1)
+                    near = _distances(apply2d(T, ref), marks).min(axis=1)
                     keep = [k for k in range(len(fids)) if near[k] <= tol_mm]
                     score = (len(keep), -float(near[keep].sum()), keep)
                     if score[:2] > best[:2]:
@@ -636,12 +636,16 @@ def global_fiducial_pose(aif, board, p, *, T_nominal: np.ndarray, max_rotation_d
         info["reason"] = "no two fiducials agree"
         return None, info
     keep = best[2]
-    r = np.hypot(*(apply2d(best_T, ref[keep])[:, None, :] - marks[None, :, :]).transpose(2, 0, 1))
-    dst = marks[np.argmin(r, axis=1)]
+    dst = marks[np.argmin(_distances(apply2d(best_T, ref[keep]), marks), axis=1)]
     T = fit_rigid2d(ref[keep], dst)
     rms = float(np.sqrt(np.mean(np.sum((apply2d(T, ref[keep]) - dst) ** 2, axis=1))))
     info.update(support=[fids[k].id for k in keep], rms_mm=round(rms, 5))
     return T, info
+
+
+def _distances(a: np.ndarray, b: np.ndarray) -> np.ndarray:
+    """(len(a), len(b)) distances between two sets of 2D points."""
+    return np.hypot(a[:, None, 0] - b[None, :, 0], a[:, None, 1] - b[None, :, 1])
 
 
 def global_body_pose(height, reliable, board, p, *, T_nominal: np.ndarray,

@@ -88,10 +88,10 @@ def test_body_layout_pose_needs_two_agreeing_bodies():
 def test_fiducials_found_anywhere_locate_a_board_its_parts_cannot_place():
     # Tuning case demo 239: the SOIC-8 missing, the 0402 shifted 0.31 mm, an 0603
     # tombstoned, the 1206 and 0805 cut by the field edge; R1 the only whole body in
-    # place, two fiducials in view (one 1 px from the image's border). The correlation
-    # locks 3.5 mm off, no two bodies agree, and the fiducials were searched only where
-    # that placement put them: not located. Searched over the whole image they place
-    # the board, and R1 agrees.
+    # place, two fiducials in view (one centred 1.5 radii from the image's border). The
+    # correlation locks 3.5 mm off, no two bodies agree, and the fiducials were searched
+    # only where that placement put them: not located. Searched over the whole image
+    # they place the board, and R1 agrees.
     case, reg, T_true = _registered_truth_case(DEMO, 239)
     assert reg.converged, reg.reason
     assert reg.method.startswith("fiducials"), reg.meta.get("fiducial_layout")
