@@ -99,15 +99,12 @@ def write_point_cloud(surface: Surface, path: str | Path, *, keep_unreliable: bo
     plyfile = _require("plyfile")
     h, w = surface.shape
     z_plane, conf_plane, fill_flag, fill_sigma = surface.height_mm, surface.confidence, None, None
+    keep = _cloud_mask(surface, keep_unreliable, filled)
+    index = np.arange(h * w) if keep is None else np.flatnonzero(keep)
     if filled:
-        z_plane, fill_flag, fill_sigma = surface.dense
-        fill_flag = fill_flag & ~surface.reliable  # the fill keeps every measured height
-        keep = surface.reliable | (fill_flag & surface.field & np.isfinite(z_plane))
-        fill_flag = fill_flag & keep
+        z_plane, _, fill_sigma = surface.dense
+        fill_flag = keep & ~surface.reliable  # the fill keeps every measured height
         conf_plane = np.where(fill_flag, np.float32(0), surface.confidence)
-        index = np.flatnonzero(keep)
-    else:
-        index = np.arange(h * w) if keep_unreliable else np.flatnonzero(surface.reliable)
     fields = [("x", "<f4"), ("y", "<f4"), ("z", "<f4"), ("red", "u1"), ("green", "u1"),
               ("blue", "u1"), ("confidence", "<f4"), ("precision", "<f4")]
     if filled:
@@ -380,6 +377,12 @@ def write_reconstruction(
         return write_mesh(surface, out, wanted & {"mesh.ply", "mesh.stl"},
                           keep_unreliable=keep_unreliable)
 
+    def cloud() -> Path:
+        if cloud_filled:
+            dense()  # the fill once, under the lock (this lane may get there first)
+        return write_point_cloud(surface, out / "cloud.ply", keep_unreliable=keep_unreliable,
+                                 filled=cloud_filled)
+
     stats: dict[str, Any] = {}
 
     def height_stats() -> None:
@@ -423,9 +426,7 @@ def write_reconstruction(
             out / "sigma_filled_mm.tiff", np.asarray(dense()[2], f32))),
         (("filled.png",), lambda: _atomic.write_image(out / "filled.png", _mask_png(dense()[1]))),
         # last: its point record would add to the dense fill's planes if the two overlapped
-        (("cloud.ply",), lambda: write_point_cloud(
-            surface, out / "cloud.ply", keep_unreliable=keep_unreliable,
-            filled=cloud_filled and dense() is not None)),
+        (("cloud.ply",), cloud),
         (("summary.json",), height_stats),
     ]
     here = [(names, fn) for names, fn in here if wanted & set(names)]
@@ -466,15 +467,20 @@ def write_reconstruction(
     return paths
 
 
-def _cloud_points(surface: Surface, keep_unreliable: bool, filled: bool) -> int:
-    """How many points ``cloud.ply`` holds (see :func:`write_point_cloud`)."""
+def _cloud_mask(surface: Surface, keep_unreliable: bool, filled: bool) -> np.ndarray | None:
+    """The pixels ``cloud.ply`` holds (see :func:`write_point_cloud`); None: all."""
     if keep_unreliable:
-        return int(surface.reliable.size)
+        return None
     if filled:
         z, flag, _ = surface.dense
-        return int(np.count_nonzero(surface.reliable
-                                    | (flag & surface.field & np.isfinite(z))))
-    return int(surface.reliable.sum())
+        return surface.reliable | (flag & surface.field & np.isfinite(z))
+    return surface.reliable
+
+
+def _cloud_points(surface: Surface, keep_unreliable: bool, filled: bool) -> int:
+    """How many points ``cloud.ply`` holds."""
+    keep = _cloud_mask(surface, keep_unreliable, filled)
+    return int(surface.reliable.size if keep is None else np.count_nonzero(keep))
 
 
 def _precision_plane(surface: Surface) -> np.ndarray:
