@@ -318,11 +318,6 @@ def judge_joint(joint, comp, m: JointMeasurement, comp_result: ComponentResult,
         possible = _possible_bridge(m, _bridge_limit(comp, config), config)
         if v == Verdict.OK and possible:
             v, reason = Verdict.UNRELIABLE, f"possible bridge to {possible}; not judged ({reason})"
-        elif v == Verdict.OK and m.gap_glint >= GLINT_GAP_SHARE:
-            v, reason = Verdict.UNRELIABLE, (
-                f"possible bridge to {m.gap_glint_neighbour}: a path across the gap is "
-                f"{m.gap_glint:.0%} clipped white (>= {GLINT_GAP_SHARE:.0%}: specular metal, "
-                f"not board; its heights are not measured): not judged ({reason})")
         elif v == Verdict.OK and m.gap_unread:
             v, reason = Verdict.UNRELIABLE, (
                 f"the gap to {m.gap_unread} is not measured (no path read, fewer than "
@@ -410,7 +405,8 @@ def _judged_on_heel_fit(joint, comp, m: JointMeasurement, config: InspectConfig)
 
 def _possible_bridge(m: JointMeasurement, bridge: float, config: InspectConfig) -> str:
     """The neighbour and why, when a gap shows solder above ``bridge`` that is not a
-    measurement of it ("" when none): a pass would ignore a possible bridge."""
+    measurement of it, or glints across (``GLINT_GAP_SHARE``) ("" when none): a pass
+    would ignore a possible bridge."""
     if m.gap_sparse_mm > bridge:
         # too little of the gap is measured to read a path, but what is measured stands
         # at solder height
@@ -424,6 +420,12 @@ def _possible_bridge(m: JointMeasurement, bridge: float, config: InspectConfig) 
         return (f"{m.gap_blend_neighbour}: a path next to the body stands level at "
                 f"{_um(m.gap_blend_mm)} (> {_um(bridge)}), but within the focus window's "
                 f"reach of the body's edge, whose height blends into it there")
+    if m.gap_glint >= GLINT_GAP_SHARE:
+        # a web whose glint leaves its own heights unmeasured: the paths beside it read
+        # the board (rule 13)
+        return (f"{m.gap_glint_neighbour}: a path across the gap is {m.gap_glint:.0%} "
+                f"clipped white (>= {GLINT_GAP_SHARE:.0%}: specular metal, not board; its "
+                f"heights are not measured)")
     return ""
 
 
