@@ -33,6 +33,7 @@ from __future__ import annotations
 import logging
 import math
 import numbers
+import warnings
 from enum import Enum
 from functools import lru_cache
 from typing import Callable
@@ -937,6 +938,11 @@ BAND_TILE_PX = 64
 BAND_GRID = 4
 #: Upper edges (cycles/px) of the radial frequency bands, up to Nyquist.
 BAND_EDGES = np.linspace(0.05, 0.5, 10)
+#: Upper edges of the fine radial bins :func:`band_powers` measures; :func:`prefilter_sigma`
+#: groups them into the bands of :data:`BAND_EDGES` on the output grid's frequencies
+#: (each frame's bins moved by its scale: with a magnification change the same texture
+#: lies at higher frequencies of a less magnified frame's own pixels).
+FINE_EDGES = np.linspace(0.01, 0.5, 50)
 #: A band is informative when defocus changes its power by at least this factor: the
 #: power is texture + noise in the sharpest frame and about noise alone in the most
 #: blurred one, so the factor is 1 + the band's signal-to-noise ratio (1 here).
@@ -949,15 +955,17 @@ BAND_MAX_FRAMES = 16
 def _band_layout(tile: int):
     y, x = np.mgrid[:tile, :tile]
     r = np.hypot(np.minimum(y, tile - y), np.minimum(x, tile - x)) / tile
-    band = np.minimum(np.searchsorted(BAND_EDGES, r, side="right"), len(BAND_EDGES))
-    counts = np.bincount(band.ravel(), minlength=len(BAND_EDGES) + 1)[:len(BAND_EDGES)]
+    fine = np.minimum(np.searchsorted(FINE_EDGES, r, side="right"), len(FINE_EDGES))
+    counts = np.bincount(fine.ravel(), minlength=len(FINE_EDGES) + 1)[:len(FINE_EDGES)]
     window = np.outer(np.hanning(tile), np.hanning(tile)).astype(np.float32)
-    return band.ravel(), np.maximum(counts, 1), window
+    return fine.ravel(), counts, window
 
 
 def band_powers(gray: np.ndarray, *, gain: float = 1.0) -> np.ndarray | None:
-    """(tiles, bands) mean power spectrum of :data:`BAND_GRID`² tiles of one grey frame in
-    the radial bands ending at :data:`BAND_EDGES`; None for frames smaller than a tile.
+    """(tiles, fine bins) power spectrum of :data:`BAND_GRID`² tiles of one grey frame,
+    summed over the radial bins ending at :data:`FINE_EDGES` (frequencies in the frame's
+    own pixels; :func:`prefilter_sigma` groups them into bands); None for frames smaller
+    than a tile.
 
     ``gain`` scales the grey levels first (as ``band_powers(gray * float32(gain))``, only
     the tiles are scaled: no whole-frame copy)."""
@@ -965,8 +973,8 @@ def band_powers(gray: np.ndarray, *, gain: float = 1.0) -> np.ndarray | None:
     t = BAND_TILE_PX
     if min(h, w) < t:
         return None
-    band, counts, window = _band_layout(t)
-    out = np.empty((BAND_GRID * BAND_GRID, len(BAND_EDGES)))
+    fine, _, window = _band_layout(t)
+    out = np.empty((BAND_GRID * BAND_GRID, len(FINE_EDGES)))
     for i in range(BAND_GRID):
         for j in range(BAND_GRID):
             r0 = min(max(0, int((i + 0.5) * h / BAND_GRID) - t // 2), h - t)
@@ -976,16 +984,36 @@ def band_powers(gray: np.ndarray, *, gain: float = 1.0) -> np.ndarray | None:
                 tile *= np.float32(gain)
             tile = (tile - tile.mean()) * window
             power = np.abs(np.fft.fft2(tile)) ** 2
-            out[i * BAND_GRID + j] = np.bincount(band, power.ravel(),
-                                                 minlength=len(BAND_EDGES) + 1)[:len(BAND_EDGES)] / counts
+            out[i * BAND_GRID + j] = np.bincount(fine, power.ravel(),
+                                                 minlength=len(FINE_EDGES) + 1)[:len(FINE_EDGES)]
     return out
+
+
+def _in_bands(fine: np.ndarray, scale: float = 1.0) -> np.ndarray:
+    """(tiles, bands) mean power per band of :data:`BAND_EDGES` from :func:`band_powers`'
+    fine bins, a frame whose pixel is 1/``scale`` output pixels: its bin at f cycles per
+    own pixel lies at f·scale cycles per output pixel. A band beyond the frame's own
+    Nyquist (f·scale above 0.5·scale) holds no bin: NaN."""
+    counts = _band_layout(BAND_TILE_PX)[1]
+    centre = (FINE_EDGES - 0.005) * scale
+    band = np.searchsorted(BAND_EDGES, centre, side="right")
+    keep = band < len(BAND_EDGES)
+    n = np.bincount(band[keep], counts[keep], minlength=len(BAND_EDGES))
+    out = np.stack([np.bincount(band[keep], row[keep], minlength=len(BAND_EDGES))
+                    for row in fine])
+    with np.errstate(invalid="ignore", divide="ignore"):
+        return np.where(n > 0, out / np.maximum(n, 1), np.nan)
 
 
 def _modulation(powers: np.ndarray) -> np.ndarray:
     """Per band: max/min power over the frames, upper quartile over the tiles (the textured
-    parts of the field decide). ``powers``: (frames, tiles, bands)."""
-    ratio = powers.max(axis=0) / np.maximum(powers.min(axis=0), 1e-12)
-    return np.percentile(ratio, 75, axis=0)
+    parts of the field decide). ``powers``: (frames, tiles, bands), NaN where a frame
+    does not reach a band (the band then compares the frames that do)."""
+    with np.errstate(invalid="ignore", divide="ignore"), warnings.catch_warnings():
+        warnings.simplefilter("ignore", RuntimeWarning)  # a band no frame reaches
+        ratio = np.nanmax(powers, axis=0) / np.maximum(np.nanmin(powers, axis=0), 1e-12)
+        ratio[np.isfinite(powers).sum(axis=0) < 2] = np.nan  # one frame: nothing to compare
+        return np.nanpercentile(ratio, 75, axis=0)
 
 
 @lru_cache(maxsize=32)
@@ -993,14 +1021,21 @@ def _noise_modulation(frames: int) -> np.ndarray:
     """:func:`_modulation` of white noise in ``frames`` frames (fixed seed)."""
     rng = np.random.default_rng(0)
     side = BAND_TILE_PX * BAND_GRID
-    return _modulation(np.asarray([band_powers(rng.standard_normal((side, side)).astype(np.float32))
+    return _modulation(np.asarray([_in_bands(band_powers(rng.standard_normal((side, side))
+                                                         .astype(np.float32)))
                                    for _ in range(frames)]))
 
 
-def prefilter_sigma(powers, operator: str = "sml") -> tuple[float, list[float]]:
+def prefilter_sigma(powers, operator: str = "sml", *, scales=None) -> tuple[float, list[float]]:
     """Gaussian pre-filter (σ, px) that keeps an operator off the noise-only frequencies.
 
-    ``powers``: :func:`band_powers` of several frames of a sweep. In each band and tile,
+    ``powers``: :func:`band_powers` of several frames of a sweep; ``scales``: for each,
+    the size of an output pixel in that frame's pixels (``Alignment.scale``; 1 for all
+    when omitted), so that every frame's spectrum is read on the output grid's
+    frequencies and σ is in output pixels. (Read in each frame's own pixels, a texture
+    seen 1.4× less magnified spreads into a band 1.4× higher, which then looks
+    modulated by defocus too: the cut-off rose a band and σ fell 0.75 → 0.64 px on a
+    noisy cone through an ordinary lens.) In each band and tile,
     defocus moves the power between texture + noise (sharp) and noise alone (blurred); the
     band's modulation is the ratio of its largest to its smallest power over the frames,
     its upper quartile over the tiles (the textured parts of the field decide). A power
@@ -1015,17 +1050,19 @@ def prefilter_sigma(powers, operator: str = "sml") -> tuple[float, list[float]]:
     help) or an operator that is not a derivative (d = 0): σ = 0.
     Returns (σ, the modulation per band).
     """
-    stack = [p for p in powers if p is not None]
+    scales = [1.0] * len(powers) if scales is None else list(scales)
+    stack = [(p, s) for p, s in zip(powers, scales) if p is not None]
     order = _DERIVATIVE_ORDER.get(_operator_name(operator), 0)
     if len(stack) < 2:
         return 0.0, []
     if len(stack) > BAND_MAX_FRAMES:  # evenly spaced, as many as the calibration has
         stack = [stack[i] for i in np.linspace(0, len(stack) - 1, BAND_MAX_FRAMES).round().astype(int)]
-    modulation = _modulation(np.asarray(stack))
+    modulation = _modulation(np.asarray([_in_bands(p, s) for p, s in stack]))
     # a power estimate fluctuates, so even pure noise has max/min > 1: compare with the
     # same statistic on white noise seen in as many frames
     noisy = np.nonzero(modulation[1:] < BAND_MODULATION_MIN * _noise_modulation(len(stack))[1:])[0]
-    table = [round(float(min(m, 1e6)), 2) for m in modulation]  # 1e6: "no noise at all"
+    # 1e6: "no noise at all"; None: a band no two frames reach
+    table = [round(float(min(m, 1e6)), 2) if np.isfinite(m) else None for m in modulation]
     if order == 0 or noisy.size == 0 or noisy[0] == 0:
         return 0.0, table  # no noise-only band, or no texture at all: nothing to gain
     f_c = float(BAND_EDGES[noisy[0]])  # the noisy band's lower edge

@@ -164,7 +164,9 @@ def reconstruct(
             pool.shutdown(cancel_futures=True)
             raise
     if auto:
-        sigma, modulation = prefilter_sigma([powers[i] for i in sorted(powers)], config.operator)
+        sigma, modulation = prefilter_sigma(
+            [powers[i] for i in sorted(powers)], config.operator,
+            scales=None if alignment is None else [alignment.scale(i) for i in sorted(powers)])
         # ±3σ within the window: the pre-filter must not widen the footprint the halo,
         # edge and support checks are sized for
         sigma = min(sigma, config.window_px / 6.0)

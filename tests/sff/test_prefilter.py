@@ -60,3 +60,28 @@ def test_bad_prefilter_values_are_refused():
     for bad in (-1, "sometimes", float("nan"), True, 17):
         with pytest.raises(InputError, match="prefilter_px"):
             FocusConfig(prefilter_px=bad)
+
+
+def test_spectra_are_read_on_the_output_grid_frequencies():
+    """Through an ordinary lens the same texture lies at higher frequencies of a less
+    magnified frame's own pixels; given each frame's scale (an output pixel in its
+    pixels), every frame's power is read at the scene's frequency, so the texture's
+    modulation stays in its own band instead of spreading into the bands above it (which
+    raised the cut-off and lowered σ)."""
+    rng = np.random.default_rng(SEED)
+    y, x = np.mgrid[:256, :256]
+    scales = np.linspace(0.6, 1.0, 9)  # 1.67x magnification change over the sweep
+    contrast = np.exp(-0.5 * ((np.arange(9) - 4) / 1.5) ** 2)  # in focus mid-sweep
+    f_out = 0.12  # cycles per output pixel: band [0.10, 0.15)
+    powers = []
+    for s, c in zip(scales, contrast):
+        f_own = f_out / s  # the same texture in this frame's own (larger) pixels
+        frame = 128 + 40 * c * np.sin(2 * np.pi * f_own * (x + 0.7 * y) / np.hypot(1, 0.7))
+        powers.append(band_powers((frame + 2 * rng.standard_normal(frame.shape)).astype(np.float32)))
+    _, mod_own = prefilter_sigma(powers)
+    sigma, mod_out = prefilter_sigma(powers, scales=scales)
+    assert mod_out[2] > 100 and max(mod_out[3:]) < 3, mod_out  # one band: the texture's
+    assert max(mod_own[3:5]) > 10, mod_own  # read in own pixels it spreads to 0.2 c/px
+    # the cut-off is the band above the texture's: f_c = 0.15 cycles per output pixel
+    assert sigma == pytest.approx(np.sqrt(2) / (2 * np.pi * 0.15), rel=1e-6)
+    assert prefilter_sigma(powers, scales=np.ones(9)) == prefilter_sigma(powers)
