@@ -97,6 +97,24 @@ def test_the_shape_floor_is_the_most_curved_arcs_reading():
             assert _meniscus(d, L, z, np.full_like(d, 0.001))[0] > floor
 
 
+def test_the_shape_floor_allows_for_the_windows_outward_reading():
+    """A window on the fillet's slope reads the profile about a pixel further from the
+    termination: the floor is the fit of the arc read that way, lower than the arc's own.
+    Tuning dense seed 262, R2.2 (an 0805 fillet 0.307 mm high whose top 0.1 mm is not
+    measured): read 118 µm against an unshifted floor of 131 µm and called insufficient;
+    a fillet at the minimum read a pixel outward stays above the shifted floor."""
+    from smdinspect.inspect._geometry import arc_fillet
+    from smdinspect.inspect._measure import _meniscus, _shape_floor
+
+    L, F, p = 0.38, 0.142, 0.02
+    d = np.linspace(0.12, L, 80)
+    floor = _shape_floor(d, L, F, shift=p)
+    assert floor < _shape_floor(d, L, F) - 0.01
+    z = arc_fillet((d + p) / L, F, L, 1.0)  # the most curved arc at the minimum, read outward
+    assert _meniscus(d, L, z, np.full_like(d, 0.001))[0] == pytest.approx(floor, abs=1e-6)
+    assert _meniscus(d, L, arc_fillet(d / L, F, L, 1.0), np.full_like(d, 0.001))[0] > floor
+
+
 def test_meniscus_extrapolated_below_or_above_the_band_is_unreliable(c2):
     joint = c2[0]
     low = joint.min_height_mm - 0.03
