@@ -1099,6 +1099,9 @@ def _measure_gaps(comp, win: _Win, config: InspectConfig, joints: dict[str, Join
         for extra in (body, others):
             if extra is not None:
                 hug = hug | extra
+        edge = _body_edge(comp, win, hug, others)
+        body_grown |= edge
+        hug |= edge
         mix = win.ctx.mixing_mm
         mixed = (np.abs(win.lx) <= hl + mix) & (np.abs(win.ly) <= hw + mix)
         if body is not None and mix > 0:
@@ -1162,6 +1165,31 @@ def _measure_gaps(comp, win: _Win, config: InspectConfig, joints: dict[str, Join
             _record(joints, a.id, b.id, z, f, sparse, config)
             _record_larger(joints, a.id, b.id, glint, "gap_glint", "gap_glint_neighbour")
             _record_unread(joints, a.id, b.id, z, sparse, open_share)
+
+
+def _body_edge(comp, win: _Win, footprint: np.ndarray, others: np.ndarray | None) -> np.ndarray:
+    """Reliable pixels standing at the body's height (above its presence threshold) in
+    blobs that reach into its ``footprint`` (nominal and measured; never into the
+    ``others``' footprints): the body's own edge, however far
+    the blob it belongs to lies from the body blob :func:`body_blob` picked. A chip's
+    top is weakly textured, so its reliable pixels are often a ring along its edges cut
+    from the middle by unreliable ones, and the window's reading of the edge spreads a
+    few pixels past it (tuning demo 251, an 0805: a strip 0.06-0.12 mm beyond the
+    nominal side, read 450-500 µm with the body top at 520 µm, cut off from the picked
+    blob and read as a bridge by the gap's paths). Solder across the gap stands far
+    below that threshold (standoff + 0.8 × the body's height)."""
+    import cv2
+
+    tall = win.rel_all & (win.h > presence_threshold_mm(comp))
+    if others is not None:
+        tall &= ~others
+    if not tall.any():
+        return tall
+    n, lab = cv2.connectedComponents(tall.view(np.uint8), connectivity=8)
+    hit = np.zeros(n, bool)
+    hit[np.unique(lab[tall & footprint])] = True
+    hit[0] = False
+    return hit[lab]
 
 
 def _sample_paths(win: _Win, comp, xs, ys, exclude, config, **level):

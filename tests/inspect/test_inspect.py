@@ -356,6 +356,35 @@ def test_a_level_band_within_the_window_reach_of_a_body_is_a_possible_bridge(win
             assert "focus window's reach" in got[jid].reason
 
 
+def test_the_bodys_edge_cut_off_from_its_blob_is_not_a_bridge():
+    """A chip's top is weakly textured: its reliable pixels can be a strip along its
+    edge, cut off from the rest of the body by unreliable ones, and the window spreads
+    that edge's height a few pixels past the body's side (tuning demo 251 R2: 0.06-0.12 mm
+    past it at 450-500 µm, read by the gap's paths as a bridge across the gap). A strip
+    at the body's height, attached to the body's footprint, is the body's edge: the
+    joints pass. The same strip at solder height (0.25 mm) is still a bridge."""
+    import dataclasses
+
+    s, labels, b, seam = _r1_band_beside_body(-0.2, -0.02)
+    _, _, _, strip = _r1_band_beside_body(-0.02, 0.12)
+    part = b.component("R1")
+    hw = part.body_width_mm / 2
+    inner = min(float(np.min(np.abs(part.to_local(j.polygon_mm)[:, 0]))) for j in part.joints)
+    for sx in (-1, 1):  # unmeasured beyond the strip's ends too: cut off from the blob
+        x0, x1 = sorted((sx * inner, sx * (inner + 0.12)))
+        seam |= placed_mask(s, labels, part.to_board(np.array(
+            [[x0, hw - 0.2], [x1, hw - 0.2], [x1, hw + 0.14], [x0, hw + 0.14]])))
+    top = float(np.median(np.array(s.height_mm)[_r1_band_beside_body(-0.2, -0.02)[3]]))
+    for height, verdict in ((top - 0.02, Verdict.OK), (0.25, Verdict.BRIDGE)):
+        h = np.array(s.height_mm)
+        h[strip] = height
+        rel = np.array(s.reliable) & ~(seam & ~strip)
+        got = {j.id: j for j in inspect_placed(
+            dataclasses.replace(s, height_mm=h, reliable=rel), b, labels).joints}
+        for jid in ("R1.1", "R1.2"):
+            assert got[jid].verdict == verdict, (height, jid, got[jid].reason)
+
+
 @pytest.mark.parametrize("unreliable_to_mm, verdict", [(0.45, Verdict.UNRELIABLE),
                                                        (0.12, Verdict.OK)])
 def test_a_gap_not_measured_at_all_does_not_pass_a_joint(unreliable_to_mm, verdict):
