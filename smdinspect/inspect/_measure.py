@@ -53,7 +53,9 @@ Colour
     finish's than to neutral solder grey: 1 for an unsoldered ENIG or OSP pad, 0 for a
     wetted one. The finish's chroma comes from the fiducials or, without them, from the
     pads that are mostly coloured themselves (:func:`pad_chroma_reference`). NaN when
-    the finish is itself grey (HASL) or no pad looks bare.
+    the finish is itself grey (HASL) or no pad looks bare. On a gull-wing,
+    ``heel_bare_fraction`` is the same over the pad beside the lead from the body to a
+    third of the foot, where a heel fillet wets.
 Plausibility
     Pad and gap pixels higher than plausible solder (chips: body top + 0.25 mm;
     gull-wing: lead top at the mould exit + 0.1 mm) are treated as unreliable (spurious focus peaks, e.g. at the end of the stack on dark or specular
@@ -165,6 +167,7 @@ class JointMeasurement:
     bulge_mm: float = NAN           # chip, bulging fillet: the concave fit's height (overshoots)
     min_reads_mm: float = NAN       # chip meniscus: the lowest F a fillet at the minimum reads
     bare_fraction: float = NAN      # visible pad looking like bare finish (colour)
+    heel_bare_fraction: float = NAN  # gull-wing: the same beside the lead by the heel
     clipped_fraction: float = NAN   # solder area clipped white in the all-in-focus image
     gap_mm: float = NAN             # highest covered level towards a neighbour
     gap_neighbour: str = ""
@@ -528,7 +531,7 @@ def _check_colour_cue(joints: dict[str, JointMeasurement], config: InspectConfig
                     "not used (a tinted solder, or no solder anywhere; the heights decide)",
                     bare, len(finite))
         for m in finite:
-            m.bare_fraction = NAN
+            m.bare_fraction = m.heel_bare_fraction = NAN
 
 
 def _others(fps: dict[str, np.ndarray], ref: str, win: "_Win") -> np.ndarray:
@@ -899,6 +902,9 @@ def _measure_gullwing(comp, joint, win: _Win, config: InspectConfig, level: floa
     m.reliable_fraction = n_rel / n if n else 0.0
     m.bare_fraction = _bare_fraction(win, _morph(pad & ~lead_grown & (u >= half_body), 1,
                                                  grow=False))
+    # beside the lead from the body to a third of the foot: where a heel fillet wets
+    m.heel_bare_fraction = _bare_fraction(win, _morph(
+        pad & ~lead_grown & (u >= half_body) & (u <= heel + (toe - heel) / 3.0), 1, grow=False))
     # Just beyond the toe (clear of the toe's blurred edge): a wetted lead's toe fillet
     # or the solder burying a foot stands here; a lifted lead leaves only the low dome.
     beyond = pad & win.rel & (u >= toe + mg) & (u <= toe + mg + 0.15) & (np.abs(v) <= b2)

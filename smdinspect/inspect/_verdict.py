@@ -45,7 +45,10 @@ Joint level
    like the bare finish (the all-in-focus colour does not need focus texture) and no
    reliable height reaches the joint's ``min_height_mm``; or at least
    ``bare_dominant_fraction`` of it does, whatever the heights (a fillet that reaches the
-   band wets the pad; the heights on a mostly bare pad are an edge's spread).
+   band wets the pad; the heights on a mostly bare pad are an edge's spread); or, on a
+   gull-wing, ``bare_missing_fraction`` of it does and of the pad beside the lead by the
+   heel too (``heel_bare_fraction``: a heel fillet wets it; the heel read over it is the
+   knee's edge).
 8. ``bridge``: a path across the gap to a neighbouring pad of the same component is
    covered higher than ``bridge_height_mm`` (``bridge_lead_height_mm`` between the feet
    of a gull-wing part, far from any body edge) along ``bridge_min_fraction`` of its
@@ -460,6 +463,19 @@ def _joint_rule(joint, comp, m: JointMeasurement, comp_result: ComponentResult,
                                  f"the {_um(m.max_mm)} read there is the "
                                  f"{'lead' if comp.kind == 'gullwing' else 'termination'}'s "
                                  f"edge spread by the focus window")
+    if comp.kind == "gullwing" and bare and math.isfinite(m.heel_bare_fraction) \
+            and m.heel_bare_fraction >= config.bare_missing_fraction:
+        # A heel fillet wets the pad beside the lead by the heel: with the pad mostly bare
+        # and bare there too, the heel's reading is the knee's blurred edge over a dry
+        # foot (tuning demo 259 U1.6: 61 % of the pad and 65 % by the heel bare, a 272 µm
+        # "heel" fitted over 215 foot pixels, passed). By the heel alone is too few
+        # pixels: a good joint read 51 % bare there, 21 % over its whole pad (test demo
+        # 10097 U1.3, HASL pads coloured by the lighting).
+        return Verdict.MISSING, (f"no solder: {m.bare_fraction:.0%} of the visible pad and "
+                                 f"{m.heel_bare_fraction:.0%} of it beside the lead by the "
+                                 f"heel look bare (>= {config.bare_missing_fraction:.0%}: no "
+                                 f"heel fillet wets it); the {_um(m.max_mm)} read there is "
+                                 f"the knee's edge spread by the focus window")
     # A bridge is read on the gap's own paths (each must be covered), not on the solder
     # area: it is judged however little of the solder area is reliable.
     bridge = _bridge_limit(comp, config)

@@ -477,3 +477,29 @@ def test_a_heel_estimated_from_the_side_strip_never_passes_silently():
     # a measured heel passes plainly
     foot = judge(joint.nominal_height_mm * cfg.side_fillet_ratio, method="foot")
     assert foot.verdict is Verdict.OK and "ESTIMATED" not in foot.reason
+
+
+@pytest.mark.parametrize("heel_bare, bare, verdict", [
+    (0.65, 0.61, Verdict.MISSING), (0.3, 0.61, Verdict.OK), (0.51, 0.21, Verdict.OK),
+    (NAN, NAN, Verdict.OK)])
+def test_a_gullwing_heel_read_over_a_bare_pad_is_missing(heel_bare, bare, verdict):
+    """A heel fillet wets the pad beside the lead by the heel. Tuning demo 259 U1.6 (no
+    solder, ENIG): 65 % of that pad looked bare while the foot's heel fit read 272 µm
+    (the knee's blurred edge) and the joint passed; its whole visible pad was 61 % bare,
+    under the 80 % that calls a pad missing whatever its heights. Good joints on 128
+    tuning boards look at most 31 % bare there; the heel region alone is few pixels, and
+    a good joint read 51 % bare there with 21 % over its pad (test demo 10097 U1.3), so
+    the pad must look mostly bare too. Without a colour cue (NaN) the heights decide."""
+    board = load_board(DEMO)
+    comp, joint = board.component("U1"), board.joint("U1.6")
+    body = ComponentResult(ref="U1", kind="gullwing", package=comp.package,
+                           verdict=Verdict.OK, reason="", present_fraction=1.0,
+                           body_height_mm=1.5, offset_mm=(0.0, 0.0), tilt_deg=0.0,
+                           reliable_fraction=0.9)
+    m = JointMeasurement(joint.id, (0.0, 0.0), 200, 0.6, max_mm=0.272, max_method="foot",
+                         bare_fraction=bare,
+                         heel_bare_fraction=heel_bare)
+    r = judge_joint(joint, comp, m, body, InspectConfig())
+    assert r.verdict is verdict, r.reason
+    if verdict is Verdict.MISSING:
+        assert "by the heel look bare" in r.reason
