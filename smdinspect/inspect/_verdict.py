@@ -89,8 +89,11 @@ Joint level
     specular and mostly unmeasured), and the fit, which overshoots a convex profile, an
     upper one; with the percentile in the band and the fit above it the joint is
     ``unreliable``, never a silent pass.
-13. ``ok`` otherwise — unless a gap to a neighbouring pad could not be read (its
-    paths each less than half reliable: a specular web is mostly unreliable) while
+13. ``ok`` otherwise (a gull-wing heel estimated from its side fillet passes flagged
+    "ESTIMATED", and only with the lead's own height read: :data:`LEAD_FEW_PIXELS` on
+    its foot's toe half, else ``unreliable``, a lifted lead not ruled out) — unless a
+    gap to a neighbouring pad could not be read (its paths each less than half
+    reliable: a specular web is mostly unreliable) while
     ``bridge_min_fraction`` of the reliable pixels pooled over those paths (at least
     ``MIN_SPARSE_GAP_PIXELS``) stand above the bridge height: then ``unreliable``,
     "possible bridge", never a silent pass; or a gap open to view (at least half of it
@@ -584,6 +587,15 @@ def _joint_rule(joint, comp, m: JointMeasurement, comp_result: ComponentResult,
         return Verdict.INSUFFICIENT, f"max solder height {_um(h)}{pm}{how} < min {_um(joint.min_height_mm)}"
     if h > joint.max_height_mm:
         return Verdict.EXCESS, f"max solder height {_um(h)}{pm}{how} > max {_um(joint.max_height_mm)}"
+    if m.max_method == "side" and comp.kind == "gullwing" and not m.lead_n >= LEAD_FEW_PIXELS:
+        # The side estimate assumes the lead sits on its pad; with no reliable pixel of
+        # the foot's toe half the lead's own height is not known, and a lifted lead's
+        # blurred edge reads on the side strip like a fillet (tuning dense 260 U2.2: a
+        # lead lifted 0.26 mm, 1 % of its foot reliable, passed at an estimated 376 µm).
+        return Verdict.UNRELIABLE, (f"heel and lead not measured ({m.lead_n} reliable "
+                                    f"pixels on the foot's toe half, < {LEAD_FEW_PIXELS}): "
+                                    f"a lifted lead is not ruled out; the side fillet reads "
+                                    f"{_um(m.side_mm)}; not judged")
     if m.max_method == "side":
         # The heel is not measured: its height is inferred from the fillet beside the
         # lead through a calibrated ratio, which a good joint and an insufficient heel

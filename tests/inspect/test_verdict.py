@@ -503,3 +503,28 @@ def test_a_gullwing_heel_read_over_a_bare_pad_is_missing(heel_bare, bare, verdic
     assert r.verdict is verdict, r.reason
     if verdict is Verdict.MISSING:
         assert "by the heel look bare" in r.reason
+
+
+@pytest.mark.parametrize("lead_n, verdict", [(0, Verdict.UNRELIABLE), (30, Verdict.OK)])
+def test_a_side_estimate_needs_the_lead_measured(lead_n, verdict):
+    """The heel estimated from the side fillet assumes the lead sits on its pad. With
+    none of the foot's toe half measured the lead's height is unknown, and a lifted
+    lead's blurred edge reads on the side strip like a fillet (tuning dense 260 U2.2,
+    lifted 0.26 mm, 1 % of its foot reliable, passed at an estimated 376 µm): not
+    judged. With the lead measured at its nominal height the estimate passes, flagged."""
+    from smdinspect.inspect._reference import lead_top_mm
+
+    board = load_board(DEMO)
+    comp, joint = board.component("U1"), board.joint("U1.2")
+    body = ComponentResult(ref="U1", kind="gullwing", package=comp.package,
+                           verdict=Verdict.OK, reason="", present_fraction=1.0,
+                           body_height_mm=1.5, offset_mm=(0.0, 0.0), tilt_deg=0.0,
+                           reliable_fraction=0.9)
+    est = joint.nominal_height_mm
+    m = JointMeasurement(joint.id, (0.0, 0.0), 200, 0.5, max_mm=est, max_method="side",
+                         side_mm=est * InspectConfig().side_fillet_ratio, lead_n=lead_n,
+                         lead_mm=lead_top_mm(comp) if lead_n else NAN,
+                         foot_reliable_fraction=0.3 if lead_n else 0.01)
+    r = judge_joint(joint, comp, m, body, InspectConfig())
+    assert r.verdict is verdict, r.reason
+    assert ("lifted lead is not ruled out" in r.reason) == (verdict is Verdict.UNRELIABLE)
