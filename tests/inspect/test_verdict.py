@@ -465,7 +465,7 @@ def test_a_heel_estimated_from_the_side_strip_never_passes_silently():
 
     def judge(side_mm, method="side"):
         m = JointMeasurement(joint.id, (0.0, 0.0), 200, 0.8, max_mm=side_mm / cfg.side_fillet_ratio,
-                             u_max_mm=0.005, max_method=method, side_mm=side_mm)
+                             u_max_mm=0.005, max_method=method, side_mm=side_mm, lead_n=30)
         return judge_joint(joint, comp, m, body, cfg)
 
     good = judge(joint.nominal_height_mm * cfg.side_fillet_ratio)
