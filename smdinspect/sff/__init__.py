@@ -18,7 +18,7 @@ from ._export import (
     write_reconstruction,
 )
 from ._focus import (OPERATORS, FocusOperator, band_powers, focus_measure, focus_measure_moments,
-                     noise_sigma, prefilter_sigma)
+                     magnification_exponent, noise_sigma, prefilter_sigma)
 from ._reasonpng import render_reason_map
 from ._reconstruct import reconstruct, to_gray
 from ._surface import (UNRELIABLE_REASONS, Surface, clipped_white, pixel_to_xy_mm,
@@ -49,6 +49,7 @@ __all__ = [
     "noise_sigma",
     "pixel_to_xy_mm",
     "precision_steps",
+    "magnification_exponent",
     "prefilter_sigma",
     "reconstruct",
     "render_height_png",

@@ -27,7 +27,8 @@ from ._confidence import (PRECISION_BOX_WINDOWS, blur_px_per_frame, borrowed_mas
 from ._depth import (PeakTracker, centroid_correction, fit_peaks, local_plane,
                      masked_gradient, select_curve_power)
 from ._focus import (FocusOperator, band_powers, focus_measure, focus_measure_moments,
-                     noise_focus, noise_focus_spread, prefilter, prefilter_sigma)
+                     magnification_exponent, noise_focus, noise_focus_spread, prefilter,
+                     prefilter_sigma)
 from ._surface import UNRELIABLE_REASONS, Surface, clipped_white, reason_shares
 
 __all__ = ["reconstruct", "to_gray"]
@@ -173,6 +174,10 @@ def reconstruct(
         log.info("focus pre-filter σ %.2f px (band modulation %s)", sigma, modulation)
     else:
         sigma, modulation = float(config.prefilter_px), None
+    # the focus's change with magnification for this sweep's texture (aligned sweeps)
+    mag_k = (None if alignment is None else
+             magnification_exponent(config.operator, [powers.get(i) for i in range(n)],
+                                    [alignment.scale(i) for i in range(n)], sigma))
     try:
         frame0 = cache.get(0)
         if frame0 is None:  # decoded here once, for its size; the first band takes it
@@ -187,6 +192,7 @@ def reconstruct(
                          f"a {shape[0]}x{shape[1]} frame); got {config.window_px}")
     bands = _bands(shape, config)
     run = _Run(stack=stack, config=config, pool=pool, alignment=alignment, sigma=sigma,
+               magnification_k=mag_k,
                cache=cache, means=means, shape=shape, frame_shape=frame0.shape,
                # what every band must share: the coarse levels and the choices made
                # from the data, taken from the first band measured (the middle one)
@@ -310,7 +316,7 @@ def _measure(run: "_Run", band: tuple[int, int, int, int], *,
             def warp(plane: np.ndarray) -> np.ndarray:
                 return alignment.warp(plane, i, rows=rows, src_row=src)
 
-            gain = alignment.scale(i) ** operator.magnification_exponent
+            gain = alignment.scale(i) ** run.magnification_k
             if gain != 1.0 or sigma_i != sigma:
                 # The same texture seen less magnified has steeper derivatives: scale the
                 # scene's part of the focus, not the sensor noise's (which is per pixel).
@@ -649,6 +655,8 @@ def _finish(run: "_Run", planes: dict, stats: dict, bands: list, *, t0: float,
         "config": config.to_dict(),
         "prefilter": {"sigma_px": round(sigma, 3), "band_modulation": modulation,
                       "noise_test_gain": round(_noise_gain(config, sigma), 3)},
+        "magnification_exponent": (None if run.magnification_k is None
+                                   else round(run.magnification_k, 3)),
         "seconds": {"stream": round(stats["t_stream"], 4), "total": round(t_total, 4)},
         "mpixel_per_s": round(n * h * w / 1e6 / t_total, 2),
     })
@@ -681,6 +689,7 @@ class _Run:
     pool: ThreadPoolExecutor
     alignment: Alignment | None
     sigma: float  # the pre-filter's σ (reference pixels)
+    magnification_k: float | None  # the focus's exponent of magnification (aligned sweeps)
     cache: dict  # frames decoded before the main pass, taken by the first band
     means: dict  # every whole frame's mean grey
     shape: tuple[int, int]  # the output grid

@@ -85,3 +85,25 @@ def test_spectra_are_read_on_the_output_grid_frequencies():
     # the cut-off is the band above the texture's: f_c = 0.15 cycles per output pixel
     assert sigma == pytest.approx(np.sqrt(2) / (2 * np.pi * 0.15), rel=1e-6)
     assert prefilter_sigma(powers, scales=np.ones(9)) == prefilter_sigma(powers)
+
+
+def test_magnification_exponent_follows_the_operators_discrete_response():
+    """F of a frame seen m× less magnified grows as m^k. For a derivative operator of
+    order d and curve power p the continuous law gives k = d·p (4 for SML); a difference
+    operator's response (2 sin πf)^d has the log-slope d·πf·cot(πf), lower the finer the
+    texture. Read from the sharpest frame's spectrum less the sweep's floor (the noise,
+    whose focus is not scaled)."""
+    from smdinspect.sff import magnification_exponent
+
+    rng = np.random.default_rng(SEED)
+    y, x = np.mgrid[:256, :256]
+    for f in (0.12, 0.3):
+        powers = []
+        for amp in (40.0, 10.0, 0.0):  # in focus, blurred, texture gone: the noise floor
+            frame = 128 + amp * np.sin(2 * np.pi * f * x) + 2 * rng.standard_normal(x.shape)
+            powers.append(band_powers(frame.astype(np.float32)))
+        k = magnification_exponent("sml", powers, [1.0] * 3)
+        expect = 4 * np.pi * f / np.tan(np.pi * f)
+        assert k == pytest.approx(expect, abs=0.15), (f, k, expect)
+    assert magnification_exponent("sml", [None, None], [1.0, 1.0]) == 4.0  # no spectra
+    assert magnification_exponent("glva", powers, [1.0] * 3) == 0.0  # not a derivative
