@@ -1176,9 +1176,8 @@ def _measure_gaps(comp, win: _Win, config: InspectConfig, joints: dict[str, Join
 def _body_edge(comp, win: _Win, footprint: np.ndarray, others: np.ndarray | None) -> np.ndarray:
     """Reliable pixels standing at the body's height (above its presence threshold) in
     blobs that reach into its ``footprint`` (nominal and measured; never into the
-    ``others``' footprints): the body's own edge, however far
-    the blob it belongs to lies from the body blob :func:`body_blob` picked. A chip's
-    top is weakly textured, so its reliable pixels are often a ring along its edges cut
+    ``others``' footprints): the body's own edge, whether or not its blob is the one
+    :func:`body_blob` picked. A chip's top is weakly textured, so its reliable pixels are often a ring along its edges cut
     from the middle by unreliable ones, and the window's reading of the edge spreads a
     few pixels past it (tuning demo 251, an 0805: a strip 0.06-0.12 mm beyond the
     nominal side, read 450-500 µm with the body top at 520 µm, cut off from the picked

@@ -1081,9 +1081,10 @@ def magnification_exponent(operator: str, powers, scales, sigma_px: float = 0.0)
     sharpest sampled frame (its fine spectrum from :func:`band_powers` less the sweep's
     floor in each bin, the sensor noise whose focus is not scaled, weighted by the
     response's power and the pre-filter's; ``scales`` as in :func:`prefilter_sigma`,
-    ``sigma_px`` in output pixels). The camera's own blur is not in it and lowers the
-    slope further (a noise-free cone through a 1.5× ordinary lens read best at 3.5 for
-    SML, 3.7 from this). Returns the nominal exponent without usable spectra."""
+    ``sigma_px`` in output pixels). Not exact: the camera's own blur and the defocus
+    are not in it (a noise-free cone through a 1.5× ordinary lens: 3.2 from this for
+    SML, where the heights' bias vanishes at 3.5; −0.01 Δd instead of +0.02 at 4).
+    Returns the nominal exponent without usable spectra."""
     op = FocusOperator(operator)
     nominal = op.magnification_exponent
     d = _DERIVATIVE_ORDER.get(op.value, 0)
