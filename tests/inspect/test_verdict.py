@@ -33,6 +33,16 @@ def c2():
     return joint, comp, body
 
 
+def _u1(joint_id: str):
+    """The demo board's SOIC-8 U1 (component, joint ``joint_id``, its body judged ok)."""
+    board = load_board(DEMO)
+    u1 = board.component("U1")
+    body = ComponentResult(ref="U1", kind="gullwing", package=u1.package, verdict=Verdict.OK,
+                           reason="", present_fraction=1.0, body_height_mm=1.5,
+                           offset_mm=(0.0, 0.0), tilt_deg=0.0, reliable_fraction=0.9)
+    return u1, board.joint(joint_id), body
+
+
 def _judge(c2, **kw):
     joint, comp, body = c2
     m = JointMeasurement(joint.id, (0.0, 0.0), 200, kw.pop("reliable_fraction", 0.8), **kw)
@@ -227,11 +237,7 @@ def test_gap_limit_is_lower_between_gull_wing_feet(c2):
     """A raised path between two gull-wing feet is a bridge from bridge_lead_height_mm
     (far from any body edge, the noise is a few µm); along a chip's side, whose gap the
     body's blurred edge lifts, only from bridge_height_mm."""
-    board = load_board(DEMO)
-    u1, j = board.component("U1"), board.joint("U1.7")
-    body = ComponentResult(ref="U1", kind="gullwing", package=u1.package, verdict=Verdict.OK,
-                           reason="", present_fraction=1.0, body_height_mm=1.5,
-                           offset_mm=(0.0, 0.0), tilt_deg=0.0, reliable_fraction=0.9)
+    u1, j, body = _u1("U1.7")
     cfg = InspectConfig()
     assert cfg.bridge_lead_height_mm < 0.038 < cfg.bridge_height_mm
 
@@ -301,11 +307,7 @@ def test_a_lifted_lead_is_judged_on_enough_pixels_whatever_the_foot_coverage():
     from smdinspect.inspect._reference import lead_top_mm
     from smdinspect.inspect._verdict import LEAD_FEW_PIXELS, LEAD_MIN_PIXELS
 
-    board = load_board(DEMO)
-    u1, j = board.component("U1"), board.joint("U1.3")
-    body = ComponentResult(ref="U1", kind="gullwing", package=u1.package, verdict=Verdict.OK,
-                           reason="", present_fraction=1.0, body_height_mm=1.5,
-                           offset_mm=(0.0, 0.0), tilt_deg=0.0, reliable_fraction=0.9)
+    u1, j, body = _u1("U1.3")
 
     def judge(n, spread=NAN, rise=0.2):
         top = lead_top_mm(u1) + rise
@@ -332,11 +334,7 @@ def test_a_gullwing_heel_is_judged_on_its_heel_fit_whatever_the_solder_area_cove
     from smdinspect.inspect._measure import HEEL_FIT_MIN_PIXELS
     from smdinspect.inspect._reference import lead_top_mm
 
-    board = load_board(DEMO)
-    u1, j = board.component("U1"), board.joint("U1.3")
-    body = ComponentResult(ref="U1", kind="gullwing", package=u1.package, verdict=Verdict.OK,
-                           reason="", present_fraction=1.0, body_height_mm=1.5,
-                           offset_mm=(0.0, 0.0), tilt_deg=0.0, reliable_fraction=0.9)
+    u1, j, body = _u1("U1.3")
     inside = 0.5 * (j.min_height_mm + j.max_height_mm)
 
     nominal = lead_top_mm(u1)
@@ -455,12 +453,7 @@ def test_a_heel_estimated_from_the_side_strip_never_passes_silently():
     beside the lead (÷ side_fillet_ratio, a calibration): a pass on it says so in the
     reason and in max_method (issue 12: an extrapolation never passes silently); a
     failure on it keeps its verdict."""
-    board = load_board(DEMO)
-    comp, joint = board.component("U1"), board.joint("U1.3")
-    body = ComponentResult(ref="U1", kind="gullwing", package=comp.package,
-                           verdict=Verdict.OK, reason="", present_fraction=1.0,
-                           body_height_mm=1.5, offset_mm=(0.0, 0.0), tilt_deg=0.0,
-                           reliable_fraction=0.9)
+    comp, joint, body = _u1("U1.3")
     cfg = InspectConfig()
 
     def judge(side_mm, method="side"):
@@ -490,12 +483,7 @@ def test_a_gullwing_heel_read_over_a_bare_pad_is_missing(heel_bare, bare, verdic
     tuning boards look at most 31 % bare there; the heel region alone is few pixels, and
     a good joint read 51 % bare there with 21 % over its pad (test demo 10097 U1.3), so
     the pad must look mostly bare too. Without a colour cue (NaN) the heights decide."""
-    board = load_board(DEMO)
-    comp, joint = board.component("U1"), board.joint("U1.6")
-    body = ComponentResult(ref="U1", kind="gullwing", package=comp.package,
-                           verdict=Verdict.OK, reason="", present_fraction=1.0,
-                           body_height_mm=1.5, offset_mm=(0.0, 0.0), tilt_deg=0.0,
-                           reliable_fraction=0.9)
+    comp, joint, body = _u1("U1.6")
     m = JointMeasurement(joint.id, (0.0, 0.0), 200, 0.6, max_mm=0.272, max_method="foot",
                          bare_fraction=bare,
                          heel_bare_fraction=heel_bare)
@@ -514,12 +502,7 @@ def test_a_side_estimate_needs_the_lead_measured(lead_n, verdict):
     judged. With the lead measured at its nominal height the estimate passes, flagged."""
     from smdinspect.inspect._reference import lead_top_mm
 
-    board = load_board(DEMO)
-    comp, joint = board.component("U1"), board.joint("U1.2")
-    body = ComponentResult(ref="U1", kind="gullwing", package=comp.package,
-                           verdict=Verdict.OK, reason="", present_fraction=1.0,
-                           body_height_mm=1.5, offset_mm=(0.0, 0.0), tilt_deg=0.0,
-                           reliable_fraction=0.9)
+    comp, joint, body = _u1("U1.2")
     est = joint.nominal_height_mm
     m = JointMeasurement(joint.id, (0.0, 0.0), 200, 0.5, max_mm=est, max_method="side",
                          side_mm=est * InspectConfig().side_fillet_ratio, lead_n=lead_n,
