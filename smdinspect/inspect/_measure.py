@@ -900,11 +900,11 @@ def _measure_gullwing(comp, joint, win: _Win, config: InspectConfig, level: floa
     rel = region & win.rel
     n, n_rel = int(region.sum()), int(rel.sum())
     m.reliable_fraction = n_rel / n if n else 0.0
-    m.bare_fraction = _bare_fraction(win, _morph(pad & ~lead_grown & (u >= half_body), 1,
-                                                 grow=False))
+    visible = pad & ~lead_grown & (u >= half_body)
+    m.bare_fraction = _bare_fraction(win, _morph(visible, 1, grow=False))
     # beside the lead from the body to a third of the foot: where a heel fillet wets
-    m.heel_bare_fraction = _bare_fraction(win, _morph(
-        pad & ~lead_grown & (u >= half_body) & (u <= heel + (toe - heel) / 3.0), 1, grow=False))
+    m.heel_bare_fraction = _bare_fraction(
+        win, _morph(visible & (u <= heel + (toe - heel) / 3.0), 1, grow=False))
     # Just beyond the toe (clear of the toe's blurred edge): a wetted lead's toe fillet
     # or the solder burying a foot stands here; a lifted lead leaves only the low dome.
     beyond = pad & win.rel & (u >= toe + mg) & (u <= toe + mg + 0.15) & (np.abs(v) <= b2)
@@ -1177,9 +1177,9 @@ def _body_edge(comp, win: _Win, footprint: np.ndarray, others: np.ndarray | None
     """Reliable pixels standing at the body's height (above its presence threshold) in
     blobs that reach into its ``footprint`` (nominal and measured; never into the
     ``others``' footprints): the body's own edge, whether or not its blob is the one
-    :func:`body_blob` picked. A chip's top is weakly textured, so its reliable pixels are often a ring along its edges cut
-    from the middle by unreliable ones, and the window's reading of the edge spreads a
-    few pixels past it (tuning demo 251, an 0805: a strip 0.06-0.12 mm beyond the
+    :func:`body_blob` picked. A chip's top is weakly textured, so its reliable pixels
+    are often a ring along its edges cut from the middle by unreliable ones, and the
+    window's reading of the edge spreads a few pixels past it (tuning demo 251, an 0805: a strip 0.06-0.12 mm beyond the
     nominal side, read 450-500 µm with the body top at 520 µm, cut off from the picked
     blob and read as a bridge by the gap's paths). Solder across the gap stands far
     below that threshold (standoff + 0.8 × the body's height)."""

@@ -587,16 +587,18 @@ def _joint_rule(joint, comp, m: JointMeasurement, comp_result: ComponentResult,
         return Verdict.INSUFFICIENT, f"max solder height {_um(h)}{pm}{how} < min {_um(joint.min_height_mm)}"
     if h > joint.max_height_mm:
         return Verdict.EXCESS, f"max solder height {_um(h)}{pm}{how} > max {_um(joint.max_height_mm)}"
-    if m.max_method == "side" and comp.kind == "gullwing" and not m.lead_n >= LEAD_FEW_PIXELS:
-        # The side estimate assumes the lead sits on its pad; with no reliable pixel of
-        # the foot's toe half the lead's own height is not known, and a lifted lead's
-        # blurred edge reads on the side strip like a fillet (tuning dense 260 U2.2: a
-        # lead lifted 0.26 mm, 1 % of its foot reliable, passed at an estimated 376 µm).
-        return Verdict.UNRELIABLE, (f"heel and lead not measured ({m.lead_n} reliable "
-                                    f"pixels on the foot's toe half, < {LEAD_FEW_PIXELS}): "
-                                    f"a lifted lead is not ruled out; the side fillet reads "
-                                    f"{_um(m.side_mm)}; not judged")
     if m.max_method == "side":
+        if not m.lead_n >= LEAD_FEW_PIXELS:
+            # The estimate assumes the lead sits on its pad; with too few reliable pixels
+            # on the foot's toe half the lead's own height is not known, and a lifted
+            # lead's blurred edge reads on the side strip like a fillet (tuning dense 260
+            # U2.2: lifted 0.26 mm, 1 % of its foot reliable, passed at an estimated
+            # 376 µm).
+            return Verdict.UNRELIABLE, (f"heel and lead not measured ({m.lead_n} reliable "
+                                        f"pixels on the foot's toe half, < "
+                                        f"{LEAD_FEW_PIXELS}): a lifted lead is not ruled "
+                                        f"out; the side fillet reads {_um(m.side_mm)}; not "
+                                        f"judged")
         # The heel is not measured: its height is inferred from the fillet beside the
         # lead through a calibrated ratio, which a good joint and an insufficient heel
         # with wetted sides read alike (tuning dense 203 U2.3, a heel at 17 % of its
