@@ -197,6 +197,7 @@ def inspect_stack(
     focus_config=None,
     inspect_config=None,
     keep_unreliable: bool = False,
+    cloud_filled: bool = False,
     progress: Callable[[int, int], None] | None = None,
     html: bool = True,
     source: str | None = None,
@@ -219,6 +220,10 @@ def inspect_stack(
     inspect_config : InspectConfig, optional
     keep_unreliable : bool
         Keep unreliable points in the exported cloud and mesh.
+    cloud_filled : bool
+        ``cloud.ply`` also holds the dense surface's filled points, each flagged
+        ``filled = 1`` (not with ``keep_unreliable``). The joints are judged on measured
+        pixels only either way.
     progress : callable(done, total), optional
         Called once per frame while reconstructing.
     html : bool
@@ -252,6 +257,10 @@ def inspect_stack(
     from .sff import Surface, reconstruct
     from .stack import FocalStack
 
+    from .sff._export import CLOUD_EXCLUSIVE
+
+    if keep_unreliable and cloud_filled:
+        raise InputError(CLOUD_EXCLUSIVE)
     out = Path(out_dir)
     if out.exists() and not out.is_dir():
         raise InputError(f"--out {out} exists and is not a directory")
@@ -283,7 +292,7 @@ def inspect_stack(
         surface = reconstruct(stack, focus_config or inspection_focus_config(stack.pixel_size_mm),
                               progress=progress)
         surface = apply_calibration_file(surface, calibration)
-        _write_reconstruction(surface, out, keep_unreliable)
+        _write_reconstruction(surface, out, keep_unreliable, cloud_filled)
     else:
         surface = apply_calibration_file(surface, calibration)  # unchanged without one
     # The 3D view the reconstruction just rendered goes into report.html too.
@@ -306,11 +315,13 @@ def inspect_stack(
     return result
 
 
-def _write_reconstruction(surface, out: Path, keep_unreliable: bool) -> None:
+def _write_reconstruction(surface, out: Path, keep_unreliable: bool,
+                          cloud_filled: bool = False) -> None:
     """Write the reconstruction into a temporary sibling folder, then move it in."""
     from .sff import write_reconstruction
 
     with tempfile.TemporaryDirectory(dir=out, prefix=".partial-") as tmp:
-        write_reconstruction(surface, tmp, keep_unreliable=keep_unreliable)
+        write_reconstruction(surface, tmp, keep_unreliable=keep_unreliable,
+                             cloud_filled=cloud_filled)
         for f in Path(tmp).iterdir():
             shutil.move(str(f), out / f.name)

@@ -701,6 +701,35 @@ def test_a_rig_calibration_reaches_every_board_and_its_change_redoes_them(pool_r
         run_batch(tmp_path / "in", BOARD, out, calibration=tmp_path / "none.json")
 
 
+def test_cloud_filled_reaches_every_board_and_its_change_redoes_them(pool_run, stacks,
+                                                                     tmp_path):
+    """`batch --cloud-filled`: each board's cloud.ply also holds the filled points
+    (flagged filled = 1), the verdicts are the pool run's (joints are judged on measured
+    pixels only), and turning the option off re-inspects the board instead of skipping
+    it (it is part of the settings' fingerprint)."""
+    import plyfile
+
+    name = "lineA/board0"
+    shutil.copytree(stacks / name, tmp_path / "in" / name)
+    out = tmp_path / "reports"
+    done = subprocess.run(
+        [PY, "-m", "smdinspect", "-q", "batch", str(tmp_path / "in"), "--board", str(BOARD),
+         "--out", str(out), "--cloud-filled", "--no-spc"],
+        cwd=REPO, capture_output=True, text=True, timeout=180)
+    assert done.returncode == pool_run.board(name).exit_code, done.stderr
+    v = plyfile.PlyData.read(str(out / name / "cloud.ply"))["vertex"]
+    assert 0 < int(v["filled"].sum()) < len(v)
+    ref = json.loads((Path(pool_run.board(name).out_dir) / "report.json").read_text())
+    got = json.loads((out / name / "report.json").read_text())
+    assert [j["verdict"] for j in got["joints"]] == [j["verdict"] for j in ref["joints"]]
+    again = run_batch(tmp_path / "in", BOARD, out, workers=1, spc=False, cloud_filled=True)
+    assert [b.skipped for b in again.boards] == [True]
+    plain = run_batch(tmp_path / "in", BOARD, out, workers=1, spc=False)
+    assert [b.skipped for b in plain.boards] == [False]
+    names = plyfile.PlyData.read(str(out / name / "cloud.ply"))["vertex"].properties
+    assert "filled" not in [p.name for p in names]
+
+
 # -- bad boards, crashes -------------------------------------------------------------
 
 
@@ -875,6 +904,8 @@ def test_bad_arguments_fail_before_any_work(stacks, tmp_path):
         run_batch(stacks, BOARD, tmp_path / "o", scheduler="tcp://127.0.0.1:1", dask_workers=1)
     with pytest.raises(InputError, match="workers must be an integer >= 1; got 0"):
         run_batch(stacks, BOARD, tmp_path / "o", workers=0)
+    with pytest.raises(InputError, match="--keep-unreliable.*not both"):
+        run_batch(stacks, BOARD, tmp_path / "o", keep_unreliable=True, cloud_filled=True)
     with pytest.raises(InputError, match="must not be"):
         run_batch(stacks / "lineA", BOARD, stacks.parent, workers=1)
     with pytest.raises(InputError, match="inside the stack"):

@@ -103,6 +103,8 @@ class BoardJob:
     focus_config: Any = None  # smdinspect.sff.FocusConfig
     inspect_config: Any = None  # smdinspect.inspect.InspectConfig
     keep_unreliable: bool = False
+    #: ``True``: cloud.ply also holds the filled points (passed on as ``cloud_filled``)
+    cloud_filled: bool = False
     force: bool = False
     #: ``"module:function"`` with the signature of
     #: :func:`smdinspect.pipeline.inspect_stack`, imported in the worker.
@@ -295,6 +297,8 @@ def _inspect_into(job: BoardJob, tmp: Path, t0: float, digest: str,
         extra: dict[str, Any] = {} if job.html else {"html": False}
         if job.calibration:
             extra["calibration"] = job.calibration
+        if job.cloud_filled:
+            extra["cloud_filled"] = True
         if report is not None:
             n_frames = len(stack)
             report("reconstruct", 0, n_frames)

@@ -151,6 +151,7 @@ def run_batch(
     focus_config: Any = None,
     inspect_config: Any = None,
     keep_unreliable: bool = False,
+    cloud_filled: bool = False,
     html: bool = True,
     spc: bool = True,
     progress: Callable[[int, int], None] | None = None,
@@ -213,6 +214,9 @@ def run_batch(
         Defaults to ``InspectConfig()``.
     keep_unreliable : bool
         Passed to the pipeline (unreliable points kept in cloud and mesh).
+    cloud_filled : bool
+        Passed to the pipeline (``cloud.ply`` also holds the filled points); not with
+        ``keep_unreliable``.
     html : bool
         Write each board's ``report.html`` (``False`` is passed on as ``html=False``).
     spc : bool
@@ -253,6 +257,10 @@ def run_batch(
     from ..pipeline import inspection_focus_config, stack_pixel_size
 
     t0 = time.perf_counter()
+    if keep_unreliable and cloud_filled:
+        from ..sff._export import CLOUD_EXCLUSIVE
+
+        raise InputError(CLOUD_EXCLUSIVE)
     if scheduler is not None and dask_workers is not None:
         raise InputError("give either scheduler (an existing Dask cluster) or dask_workers "
                          "(a local one), not both")
@@ -308,6 +316,8 @@ def run_batch(
     settings = {"smdinspect": __version__, "pipeline": inspect_fn, "focus": focus_key,
                 "inspect": inspect_config.to_dict(), "keep_unreliable": bool(keep_unreliable),
                 "html": bool(html)}
+    if cloud_filled:  # only when set: earlier batches' fingerprints stay valid
+        settings["cloud_filled"] = True
     if calibration is not None:
         from ..calibrate import read_calibration
 
@@ -332,7 +342,8 @@ def run_batch(
             BoardJob(name=name, stack_dir=str(path.resolve()), out_dir=str(o_real / name),
                      board=board_obj, board_sha256=board_sha256, settings=settings,
                      focus_config=focus_config, inspect_config=inspect_config,
-                     keep_unreliable=bool(keep_unreliable), force=bool(force),
+                     keep_unreliable=bool(keep_unreliable),
+                     cloud_filled=bool(cloud_filled), force=bool(force),
                      inspect_fn=inspect_fn, html=bool(html), calibration=calibration or "")
             for name, path in stacks
         ]

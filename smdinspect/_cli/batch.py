@@ -42,7 +42,7 @@ give its tls:// address and a client certificate the CA signed:
 def register(sub: argparse._SubParsersAction) -> None:
     from ..inspect._config import InspectConfig
     from ..sff import OPERATORS
-    from .reconstruct import add_calibration_argument
+    from .reconstruct import add_calibration_argument, add_cloud_filled_argument
 
     p = sub.add_parser(
         "batch", help="inspect every stack under a folder (process pool or Dask cluster)",
@@ -100,6 +100,7 @@ def register(sub: argparse._SubParsersAction) -> None:
                    help="threads per board (default: CPUs / processes; 1 on Dask)")
     f.add_argument("--keep-unreliable", action="store_true",
                    help="keep unreliable points in cloud.ply and the mesh")
+    add_cloud_filled_argument(f)
     f.add_argument("--inspect-config", type=Path, default=None, metavar="JSON",
                    help="JSON file of InspectConfig settings (see the README, 'Inspection')")
     f.add_argument("--min-reliable-fraction", type=float, default=None,
@@ -153,7 +154,8 @@ def run(args: argparse.Namespace) -> int:
                         threads=args.threads, scheduler=args.scheduler,
                         dask_workers=args.dask_local, tls=tls, force=args.force,
                         focus_config=focus, inspect_config=inspect_config_from(args),
-                        keep_unreliable=args.keep_unreliable, html=not args.no_html,
+                        keep_unreliable=args.keep_unreliable,
+                        cloud_filled=args.cloud_filled, html=not args.no_html,
                         spc=not args.no_spc, progress=bar.boards, board_progress=bar.board,
                         calibration=args.calibration)
     finally:

@@ -15,7 +15,8 @@ log = logging.getLogger(__name__)
 
 def register(sub: argparse._SubParsersAction) -> None:
     from ..inspect._config import InspectConfig
-    from .reconstruct import add_calibration_argument, add_stack_arguments
+    from .reconstruct import (add_calibration_argument, add_cloud_filled_argument,
+                              add_stack_arguments)
 
     p = sub.add_parser(
         "inspect", help="locate the board, measure and judge every solder joint",
@@ -34,6 +35,7 @@ def register(sub: argparse._SubParsersAction) -> None:
                    help="joints with a smaller fraction of reliable pixels are 'unreliable' "
                         f"(default {InspectConfig.min_reliable_fraction})")
     p.add_argument("--no-html", action="store_true", help="skip report.html")
+    add_cloud_filled_argument(p)
     add_calibration_argument(p, "before the joints are measured")
     # Inspection focuses with its own, smaller window by default (steep, narrow fillets).
     p.set_defaults(func=run, window_px=None)  # from the pixel size (inspection_window_px)
@@ -64,10 +66,12 @@ def run(args: argparse.Namespace) -> int:
     from ..inspect._board import check_board_in_field
     from ..pipeline import (inspect_stack, inspection_focus_config, inspection_outputs,
                             is_reconstruction, load_reconstruction)
-    from ..sff._export import RECONSTRUCTION_OUTPUTS
+    from ..sff._export import CLOUD_EXCLUSIVE, RECONSTRUCTION_OUTPUTS
     from ..stack import open_stack
     from .reconstruct import check_calibration_argument, focus_config_from
 
+    if args.cloud_filled and args.keep_unreliable:
+        raise InputError(CLOUD_EXCLUSIVE)
     board = load_any_board(args.board)  # a board JSON, or a CAD file imported on the fly
     check_calibration_argument(args)
     config = inspect_config_from(args)
@@ -93,6 +97,7 @@ def run(args: argparse.Namespace) -> int:
             focus = focus_config_from(args, inspection_focus_config(stack.pixel_size_mm))
             result = inspect_stack(stack, board, tmp, focus_config=focus,
                                    inspect_config=config, keep_unreliable=args.keep_unreliable,
+                                   cloud_filled=args.cloud_filled,
                                    progress=progress_callback(args, "focus"),
                                    html=not args.no_html, source=source,
                                    calibration=args.calibration)

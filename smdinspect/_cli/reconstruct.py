@@ -113,6 +113,14 @@ def focus_config_from(args: argparse.Namespace, base=None):
     return dataclasses.replace(base, **given) if base is not None else FocusConfig(**given)
 
 
+def add_cloud_filled_argument(p: argparse.ArgumentParser) -> None:
+    """``--cloud-filled`` (``reconstruct``, ``inspect``, ``batch``)."""
+    p.add_argument("--cloud-filled", action="store_true",
+                   help="cloud.ply also holds the filled points of the dense surface (where "
+                        "no height was measured), each with filled = 1 and sigma_filled, the "
+                        "fill's uncertainty (mm); not with --keep-unreliable")
+
+
 def register(sub: argparse._SubParsersAction) -> None:
     p = sub.add_parser("reconstruct", help="focal stack → height map, confidence, cloud, mesh",
                        description="Measure every pixel's height by shape from focus.")
@@ -124,10 +132,7 @@ def register(sub: argparse._SubParsersAction) -> None:
                         "sigma_filled_mm.tiff, filled.png, field.png, height.png, reason.png, "
                         "view3d.png, cloud.ply, mesh.ply, mesh.stl; summary.json is always "
                         "written")
-    p.add_argument("--cloud-filled", action="store_true",
-                   help="cloud.ply also holds the filled points of the dense surface (where "
-                        "no height was measured), each with filled = 1 and sigma_filled, the "
-                        "fill's uncertainty (mm); not with --keep-unreliable")
+    add_cloud_filled_argument(p)
     add_calibration_argument(p, "to the heights (and its pixel size taken when the stack "
                                 "has none)")
     p.set_defaults(func=run)

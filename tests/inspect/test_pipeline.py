@@ -115,6 +115,36 @@ def test_cli_on_the_reconstruction(run, capsys):
     assert sum(j["verdict"] != "ok" for j in doc["joints"]) >= len(result.defects)
 
 
+def test_cli_cloud_filled_adds_flagged_points_and_keeps_the_verdicts(run, tmp_path, capsys):
+    """`inspect --cloud-filled`: cloud.ply also holds the filled points (filled = 1, at
+    the dense surface's height), the verdicts are those of the run without it (joints
+    are judged on measured pixels only); with --keep-unreliable it is a one-line error,
+    exit 2, before any work."""
+    import plyfile
+    import tifffile
+
+    result, _, root = run
+    out = tmp_path / "o"
+    code = main(["-q", "inspect", str(root / "stack"), "--board", DEMO, "--out", str(out),
+                 "--cloud-filled", "--no-html"])
+    assert code == result.exit_code == 1
+    v = plyfile.PlyData.read(str(out / "cloud.ply"))["vertex"]
+    filled = v["filled"].astype(bool)
+    assert 0 < filled.sum() < len(v)
+    dense = tifffile.imread(out / "height_filled_mm.tiff")
+    rows = np.round(dense.shape[0] - 1 - v["y"] / 0.02).astype(int)
+    cols = np.round(v["x"] / 0.02).astype(int)
+    assert np.allclose(v["z"], dense[rows, cols], atol=1e-6)
+    doc = json.loads((out / "report.json").read_text())
+    assert [j["verdict"] for j in doc["joints"]] == [j.verdict.value for j in result.joints]
+    capsys.readouterr()
+    assert main(["-q", "inspect", str(root / "stack"), "--board", DEMO, "--out",
+                 str(tmp_path / "o2"), "--cloud-filled", "--keep-unreliable"]) == 2
+    err = capsys.readouterr().err.strip()
+    assert len(err.splitlines()) == 1 and "not both" in err
+    assert not (tmp_path / "o2").exists()
+
+
 def test_cli_wrong_board_exits_3(run, capsys):
     _, _, root = run
     code = main(["-q", "inspect", str(root / "out"), "--board", DENSE, "--out", str(root / "wrong")])
