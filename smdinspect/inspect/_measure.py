@@ -1009,24 +1009,46 @@ def _path_level(h: np.ndarray, valid: np.ndarray, config: InspectConfig, *,
     stands within ``bridge_height_mm`` of the covered height (a web's top runs along
     the body at one height; a path that straddles the body's edge mixes the body's
     heights with the board's), and below ``below_mm`` (NaN: no bound; a sparse path's
-    pixels at or above it are left out: the body's bled edge)."""
-    best_z, best_f = NAN, NAN
+    pixels at or above it are left out: the body's bled edge).
+
+    A path's level counts only as far as a path next to it (a pixel away) stands too:
+    every height is read through a focus window several pixels wide, so solder standing
+    across the gap raises the paths beside its crest as well, and a level seen in one
+    path alone, its neighbours at the board, is a run of stray peaks, not a surface
+    (test seed dense 10125: one path beside an 0402's body at 73 µm between paths at
+    16 and 10 µm had called both its joints bridged). A neighbour too sparsely measured
+    to have a level of its own lends it the same quantile of what it has (however few
+    its pixels: requiring 3 lost a true bridge, test seed dense 10108 C3)."""
+    q = 1.0 - config.bridge_min_fraction
+    n = len(h)
+    own = np.full(n, NAN)   # each path's level (NaN: none)
+    lend = np.full(n, NAN)  # what each path lends its neighbours
+    frac = np.full(n, NAN)
     sparse = []
-    for hk, ok in zip(h, valid):
+    for k, (hk, ok) in enumerate(zip(h, valid)):
         vals = hk[ok]
         if vals.size < max(3, 0.5 * ok.size):
-            sparse.append(vals[vals < below_mm] if level and np.isfinite(below_mm) else vals)
+            kept = vals[vals < below_mm] if level and np.isfinite(below_mm) else vals
+            sparse.append(kept)
+            if kept.size:
+                lend[k] = float(np.quantile(kept, q))
             continue
         if level:
-            z, mid, top = np.quantile(vals, [1.0 - config.bridge_min_fraction, 0.5,
-                                             config.bridge_min_fraction])
+            z, mid, top = np.quantile(vals, [q, 0.5, config.bridge_min_fraction])
             if mid - z > config.bridge_height_mm or not top < below_mm:
                 continue
         else:
-            z = np.quantile(vals, 1.0 - config.bridge_min_fraction)
-        z = float(z)
+            z = np.quantile(vals, q)
+        own[k] = lend[k] = float(z)
+        frac[k] = float(np.mean(vals > config.bridge_height_mm))
+    best_z, best_f = NAN, NAN
+    for k in np.flatnonzero(np.isfinite(own)):
+        beside = [lend[i] for i in (k - 1, k + 1) if 0 <= i < n and np.isfinite(lend[i])]
+        if not beside:
+            continue
+        z = min(own[k], max(beside))
         if not np.isfinite(best_z) or z > best_z:
-            best_z, best_f = z, float(np.mean(vals > config.bridge_height_mm))
+            best_z, best_f = z, frac[k]
     return best_z, best_f, (np.concatenate(sparse) if sparse else np.empty(0))
 
 

@@ -373,15 +373,40 @@ def test_level_paths_take_a_web_not_the_body_edge():
     cfg = InspectConfig()
     rng = np.random.default_rng(0)
     n = 60
-    web = 0.21 + rng.normal(0, 0.003, n)
-    straddle = np.where(rng.random(n) < 0.3, rng.uniform(0.0, 0.3, n), 0.41)
-    bled = 0.40 + rng.normal(0, 0.003, n)
-    ok = np.ones((1, n), bool)
-    for row, want in ((web, True), (straddle, False), (bled, False)):
-        z, _, _ = _path_level(row[None], ok, cfg, level=True, below_mm=0.45 - 0.1)
+    ok = np.ones((3, n), bool)  # three paths a pixel apart, each seen alike
+    web = 0.21 + rng.normal(0, 0.003, (3, n))
+    straddle = np.where(rng.random((3, n)) < 0.3, rng.uniform(0.0, 0.3, (3, n)), 0.41)
+    bled = 0.40 + rng.normal(0, 0.003, (3, n))
+    for rows, want in ((web, True), (straddle, False), (bled, False)):
+        z, _, _ = _path_level(rows, ok, cfg, level=True, below_mm=0.45 - 0.1)
         assert math.isfinite(z) is want, (z, want)
-        z_plain, _, _ = _path_level(row[None], ok, cfg)
+        z_plain, _, _ = _path_level(rows, ok, cfg)
         assert z_plain > cfg.bridge_height_mm  # the plain level would call each a web
+
+
+def test_a_level_seen_in_one_path_alone_is_not_a_surface():
+    """Heights are read through a focus window several pixels wide: solder standing
+    across a gap raises the paths beside its crest too. One path at 73 µm between paths
+    at the board (test seed dense 10125) has no level; the same with a neighbour raised,
+    or a sparsely measured neighbour whose few pixels stand as high, has."""
+    from smdinspect.inspect._measure import _path_level
+
+    cfg = InspectConfig()
+    rng = np.random.default_rng(1)
+    n = 15
+    rows = np.stack([0.016, 0.073, 0.010, 0.009]).repeat(n).reshape(4, n) \
+        + rng.normal(0, 0.002, (4, n))
+    ok = np.ones((4, n), bool)
+    z, _, _ = _path_level(rows, ok, cfg)
+    assert z < cfg.bridge_height_mm
+    raised = rows.copy()
+    raised[2] += 0.06
+    z, f, _ = _path_level(raised, ok, cfg)
+    assert z > cfg.bridge_height_mm and f == 1.0
+    sparse_ok = ok.copy()
+    sparse_ok[2, 4:] = False  # 4 of 15 pixels: too few for a level of its own
+    z, _, pooled = _path_level(raised, sparse_ok, cfg)
+    assert z > cfg.bridge_height_mm and pooled.size == 4
 
 
 @pytest.mark.parametrize("kept", [0.3, 0.1])
