@@ -1012,17 +1012,16 @@ def _path_level(h: np.ndarray, valid: np.ndarray, config: InspectConfig, *,
     pixels at or above it are left out: the body's bled edge).
 
     Beyond the body margin (not ``level``) a path's level counts only as far as a path
-    next to it (a pixel away) stands too:
-    every height is read through a focus window several pixels wide, so solder standing
-    across the gap raises the paths beside its crest as well, and a level seen in one
-    path alone, its neighbours at the board, is a run of stray peaks, not a surface
-    (test seed dense 10125: one path beside an 0402's body at 73 µm between paths at
-    16 and 10 µm had called both its joints bridged). A neighbour too sparsely measured
-    to have a level of its own lends it the same quantile of what it has (however few
-    its pixels: requiring 3 lost a true bridge, test seed dense 10108 C3). In the band
-    next to a chip's body (``level``) a web that wets the body's side may show in a
-    single path beyond its edge, the rest of it under the body's margin: there one
-    path's level counts alone."""
+    next to it (a pixel away) stands too: every height is read through a focus window
+    several pixels wide, so solder standing across the gap raises the paths beside its
+    crest as well, and a level seen in one path alone, its neighbours at the board, is a
+    run of stray peaks, not a surface (test seed dense 10125: one path beside an 0402's
+    body at 73 µm between paths at 16 and 10 µm had called both its joints bridged). A
+    neighbour too sparsely measured to have a level of its own lends it the same
+    quantile of what it has (however few its pixels: requiring 3 lost a true bridge,
+    test seed dense 10108 C3). In the band next to a chip's body (``level``) a web that
+    wets the body's side may show in a single path beyond its edge, the rest of it under
+    the body's margin: there one path's level counts alone."""
     q = 1.0 - config.bridge_min_fraction
     n = len(h)
     own = np.full(n, NAN)   # each path's level (NaN: none)
