@@ -255,12 +255,10 @@ def inspect_stack(
     from .inspect._inspect import inspect_surface
     from .inspect._report import write_not_located, write_reports
     from .sff import Surface, reconstruct
+    from .sff._export import check_cloud_options
     from .stack import FocalStack
 
-    from .sff._export import CLOUD_EXCLUSIVE
-
-    if keep_unreliable and cloud_filled:
-        raise InputError(CLOUD_EXCLUSIVE)
+    check_cloud_options(keep_unreliable, cloud_filled)
     out = Path(out_dir)
     if out.exists() and not out.is_dir():
         raise InputError(f"--out {out} exists and is not a directory")

@@ -257,10 +257,9 @@ def run_batch(
     from ..pipeline import inspection_focus_config, stack_pixel_size
 
     t0 = time.perf_counter()
-    if keep_unreliable and cloud_filled:
-        from ..sff._export import CLOUD_EXCLUSIVE
+    from ..sff._export import check_cloud_options
 
-        raise InputError(CLOUD_EXCLUSIVE)
+    check_cloud_options(keep_unreliable, cloud_filled)
     if scheduler is not None and dask_workers is not None:
         raise InputError("give either scheduler (an existing Dask cluster) or dask_workers "
                          "(a local one), not both")

@@ -66,12 +66,11 @@ def run(args: argparse.Namespace) -> int:
     from ..inspect._board import check_board_in_field
     from ..pipeline import (inspect_stack, inspection_focus_config, inspection_outputs,
                             is_reconstruction, load_reconstruction)
-    from ..sff._export import CLOUD_EXCLUSIVE, RECONSTRUCTION_OUTPUTS
+    from ..sff._export import RECONSTRUCTION_OUTPUTS, check_cloud_options
     from ..stack import open_stack
     from .reconstruct import check_calibration_argument, focus_config_from
 
-    if args.cloud_filled and args.keep_unreliable:
-        raise InputError(CLOUD_EXCLUSIVE)
+    check_cloud_options(args.keep_unreliable, args.cloud_filled)
     board = load_any_board(args.board)  # a board JSON, or a CAD file imported on the fly
     check_calibration_argument(args)
     config = inspect_config_from(args)

@@ -145,7 +145,7 @@ def run(args: argparse.Namespace) -> int:
     from ..calibrate import apply_calibration_file
     from ..cli import progress_callback
     from ..sff import reconstruct, write_reconstruction
-    from ..sff._export import CLOUD_EXCLUSIVE, RECONSTRUCTION_OUTPUTS
+    from ..sff._export import RECONSTRUCTION_OUTPUTS, check_cloud_options
     from ..errors import InputError
     from ..stack import open_stack
     from .study import resolve_auto_operator
@@ -156,8 +156,7 @@ def run(args: argparse.Namespace) -> int:
     if unknown:
         raise InputError(f"--outputs: unknown {', '.join(unknown)}; choose from "
                          f"{', '.join(RECONSTRUCTION_OUTPUTS)} (or all)")
-    if args.cloud_filled and args.keep_unreliable:
-        raise InputError(CLOUD_EXCLUSIVE)
+    check_cloud_options(args.keep_unreliable, args.cloud_filled)
     check_calibration_argument(args)
     stack = open_stack(args.stack, step_mm=args.step_mm, pixel_size_mm=args.pixel_size_mm,
                        z_from_name=args.z_from_name)

@@ -1025,7 +1025,7 @@ def _path_level(h: np.ndarray, valid: np.ndarray, config: InspectConfig, *,
     q = 1.0 - config.bridge_min_fraction
     n = len(h)
     own = np.full(n, NAN)   # each path's level (NaN: none)
-    lend = np.full(n, NAN)  # what each path lends its neighbours
+    lend = np.full(n, NAN)  # what each path lends its neighbours (not ``level``)
     frac = np.full(n, NAN)
     sparse = []
     for k, (hk, ok) in enumerate(zip(h, valid)):
@@ -1033,7 +1033,7 @@ def _path_level(h: np.ndarray, valid: np.ndarray, config: InspectConfig, *,
         if vals.size < max(3, 0.5 * ok.size):
             kept = vals[vals < below_mm] if level and np.isfinite(below_mm) else vals
             sparse.append(kept)
-            if kept.size:
+            if kept.size and not level:
                 lend[k] = float(np.quantile(kept, q))
             continue
         if level:
@@ -1206,9 +1206,10 @@ def _body_edge(comp, win: _Win, footprint: np.ndarray, others: np.ndarray | None
     ``others``' footprints): the body's own edge, whether or not its blob is the one
     :func:`body_blob` picked. A chip's top is weakly textured, so its reliable pixels
     are often a ring along its edges cut from the middle by unreliable ones, and the
-    window's reading of the edge spreads a few pixels past it (tuning demo 251, an 0805: a strip 0.06-0.12 mm beyond the
-    nominal side, read 450-500 µm with the body top at 520 µm, cut off from the picked
-    blob and read as a bridge by the gap's paths). Solder across the gap stands far
+    window's reading of the edge spreads a few pixels past it (tuning demo 251, an
+    0805: a strip 0.06-0.12 mm beyond the nominal side, read 450-500 µm with the body
+    top at 520 µm, cut off from the picked blob and read as a bridge by the gap's
+    paths). Solder across the gap stands far
     below that threshold (standoff + 0.8 × the body's height)."""
     import cv2
 

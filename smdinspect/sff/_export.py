@@ -80,6 +80,13 @@ CLOUD_EXCLUSIVE = ("cloud.ply holds either the unreliable readings (--keep-unrel
                    "the filled surface (--cloud-filled), not both")
 
 
+def check_cloud_options(keep_unreliable: bool, cloud_filled: bool) -> None:
+    """InputError (:data:`CLOUD_EXCLUSIVE`) when both extra kinds of cloud points are
+    asked for; commands call it before any work."""
+    if keep_unreliable and cloud_filled:
+        raise InputError(CLOUD_EXCLUSIVE)
+
+
 def write_point_cloud(surface: Surface, path: str | Path, *, keep_unreliable: bool = False,
                       filled: bool = False) -> Path:
     """Write ``cloud.ply``: binary little-endian PLY with float x, y, z (mm), uchar
@@ -94,8 +101,7 @@ def write_point_cloud(surface: Surface, path: str | Path, *, keep_unreliable: bo
     filled in, not measured) and a float ``sigma_filled`` (the fill's uncertainty in mm,
     0 where measured); a filled point's confidence is 0 and its precision NaN. Not with
     ``keep_unreliable`` (whose extra points carry their own, unreliable readings)."""
-    if filled and keep_unreliable:
-        raise InputError(CLOUD_EXCLUSIVE)
+    check_cloud_options(keep_unreliable, filled)
     plyfile = _require("plyfile")
     h, w = surface.shape
     z_plane, conf_plane, fill_flag, fill_sigma = surface.height_mm, surface.confidence, None, None
@@ -347,8 +353,7 @@ def write_reconstruction(
     if unknown:
         raise InputError(f"unknown output {', '.join(unknown)}; choose from "
                          f"{', '.join(RECONSTRUCTION_OUTPUTS)}")
-    if cloud_filled and keep_unreliable:
-        raise InputError(CLOUD_EXCLUSIVE)
+    check_cloud_options(keep_unreliable, cloud_filled)
     if not previews:
         wanted -= {"height.png", "reason.png", "view3d.png"}
     if surface.reason is None:

@@ -943,6 +943,8 @@ BAND_EDGES = np.linspace(0.05, 0.5, 10)
 #: (each frame's bins moved by its scale: with a magnification change the same texture
 #: lies at higher frequencies of a less magnified frame's own pixels).
 FINE_EDGES = np.linspace(0.01, 0.5, 50)
+#: Their centres.
+FINE_CENTRES = FINE_EDGES - (FINE_EDGES[1] - FINE_EDGES[0]) / 2
 #: A band is informative when defocus changes its power by at least this factor: the
 #: power is texture + noise in the sharpest frame and about noise alone in the most
 #: blurred one, so the factor is 1 + the band's signal-to-noise ratio (1 here).
@@ -995,8 +997,7 @@ def _in_bands(fine: np.ndarray, scale: float = 1.0) -> np.ndarray:
     own pixel lies at f·scale cycles per output pixel. A band beyond the frame's own
     Nyquist (f·scale above 0.5·scale) holds no bin: NaN."""
     counts = _band_layout(BAND_TILE_PX)[1]
-    centre = (FINE_EDGES - 0.005) * scale
-    band = np.searchsorted(BAND_EDGES, centre, side="right")
+    band = np.searchsorted(BAND_EDGES, FINE_CENTRES * scale, side="right")
     keep = band < len(BAND_EDGES)
     n = np.bincount(band[keep], counts[keep], minlength=len(BAND_EDGES))
     out = np.stack([np.bincount(band[keep], row[keep], minlength=len(BAND_EDGES))
@@ -1094,7 +1095,7 @@ def magnification_exponent(operator: str, powers, scales, sigma_px: float = 0.0)
     pairs = [(pw, s) for pw, s in zip(powers, scales) if pw is not None]
     if not d or not pairs:
         return nominal
-    centre = FINE_EDGES - 0.005
+    centre = FINE_CENTRES
     resp = np.sin(np.pi * centre) ** (2 * d)
     # the sharpest frame (the most response-weighted power), less the sweep's floor in
     # each bin (its most blurred frames: sensor noise, whose own focus is not scaled)
