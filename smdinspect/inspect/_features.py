@@ -1,15 +1,18 @@
-"""Fine registration from features: component body centroids and fiducial circles.
+"""Fine registration from features: component body centres and fiducial circles.
 
 After the coarse search (error up to a few tens of µm and a few tenths of a degree),
 every component body and fiducial gives one point pair (nominal BOARD position,
 measured WORLD position):
 
-* **Body centroid**: the connected blob of reliable pixels standing above the body's
+* **Body centre**: the connected blob of reliable pixels standing above the body's
   presence threshold near the nominal body, holes filled; used only when its area (of
   its convex hull: notches along a termination do not count) is close to the body's
   nominal area (a shifted, tombstoned or missing part either fails
-  this or is rejected later as an outlier). The centroid of a symmetric body is immune
-  to symmetric edge blur.
+  this or is rejected later as an outlier). A gull-wing body gives its blob's centroid;
+  a chip the midpoint of its blob's extents along and across its length, with an
+  uncertainty along the length from how much the blob's ends changed
+  (:func:`_chip_position`: a termination lost to glint or solder heaped over one moves
+  the midpoint along the chip, not across it). Both are immune to symmetric edge blur.
 * **Fiducial**: in the all-in-focus image, the fiducial's edge is found along rays from
   the predicted centre (strongest radial gradient, either polarity, sub-pixel) and a
   circle is fitted to the edge points (algebraic fit, then outliers dropped); used when
@@ -19,8 +22,10 @@ Bodies are searched up to :data:`BODY_SEARCH_MM` from where the coarse placement
 them (the blob of plausible area nearest to the prediction), since the coarse match can
 lock onto one large shifted part (an IC) and leave every other part that far off.
 A consensus (every two pairs propose a rigid transform; the one most pairs agree with
-within :data:`CONSENSUS_MM` wins) removes such a part before a weighted least-squares
-rigid transform (2D Procrustes) is fitted to the agreeing pairs, with iterative rejection
+within :data:`CONSENSUS_MM` wins, a chip's residual along its length counted in units of
+its uncertainty there) removes such a part before a weighted least-squares rigid
+transform is fitted to the agreeing pairs (each weighed in each direction by its
+uncertainty, :func:`fit_pairs`), with iterative rejection
 of the worst pair while it is off by more than ``max(3 × median residual, 30 µm)``, its
 residual taken off the fit of the others (deletion residual: a biased body pulls the fit
 of all towards itself). Fiducials weigh 20 times
@@ -43,10 +48,13 @@ __all__ = ["FeaturePair", "feature_pairs", "fit_rigid2d"]
 log = logging.getLogger(__name__)
 
 #: Weights in the rigid fit. Fiducial centres are found to ~1 µm on the synthetic
-#: boards; body centroids carry 10–40 µm of bias from asymmetric fillets and edge blur,
+#: boards; body centres carry 10–40 µm of bias from asymmetric fillets and edge blur,
 #: so they only matter when fewer than two fiducials are seen.
 FIDUCIAL_WEIGHT = 1.0
 BODY_WEIGHT = 0.05
+#: A chip body's position error across its length on a clean blob (mm): the scale by
+#: which its uncertainty along the length is measured (:func:`_chip_position`).
+BODY_SIGMA_MM = 0.015
 #: How far from its predicted position a body is searched (mm).
 BODY_SEARCH_MM = 0.6
 #: Pairs within this of a candidate transform agree with it (mm).
@@ -60,6 +68,29 @@ class FeaturePair:
     board_xy: tuple[float, float]
     world_xy: tuple[float, float]
     weight: float = 1.0
+    #: A chip body: the unit vector (WORLD) along its length, and its position's
+    #: uncertainty along the length relative to across it (≥ 1; see
+    #: :func:`_chip_position`). None: the position is known alike in every direction.
+    axis: tuple[float, float] | None = None
+    along_sigma: float = 1.0
+
+    def residual(self, T: np.ndarray) -> float:
+        """How far ``T`` puts this feature from where it was measured (mm), the part
+        along a chip's length divided by :attr:`along_sigma`."""
+        d = apply2d(T, np.array([self.board_xy]))[0] - self.world_xy
+        if self.axis is None:
+            return float(math.hypot(*d))
+        u = np.asarray(self.axis)
+        a = float(d @ u)
+        return float(math.hypot(a / self.along_sigma, float(d @ [-u[1], u[0]])))
+
+    def information(self) -> np.ndarray:
+        """(2, 2) the pair's weight in the rigid fit, in each direction."""
+        m = np.eye(2)
+        if self.axis is not None:
+            u = np.asarray(self.axis)
+            m -= (1.0 - self.along_sigma ** -2) * np.outer(u, u)
+        return self.weight * m
 
 
 def presence_threshold_mm(comp) -> float:
@@ -181,12 +212,58 @@ def _body_pair(comp, height, reliable, T, p, *,
         c = np.array([cols.mean(), rows.mean()])
         d = float(np.hypot(*(c - pred)))
         if d < best_d:
-            best, best_d = c, d
+            best, best_d = (c, rows, cols), d
     if best is None:
         return None
-    x, y = pixel_to_world(np.array([best + [c0, r0]]), shape=shape, pixel_size_mm=p)[0]
-    return FeaturePair("body", comp.ref, (comp.x_mm, comp.y_mm), (float(x), float(y)),
-                       weight=BODY_WEIGHT)
+    c, rows, cols = best
+    if comp.kind != "chip":
+        x, y = pixel_to_world(np.array([c + [c0, r0]]), shape=shape, pixel_size_mm=p)[0]
+        return FeaturePair("body", comp.ref, (comp.x_mm, comp.y_mm), (float(x), float(y)),
+                           weight=BODY_WEIGHT)
+    xy = pixel_to_world(np.column_stack([cols + c0, rows + r0]), shape=shape, pixel_size_mm=p)
+    a = math.radians(comp.rotation_deg)
+    u = T[:2, :2] @ [math.cos(a), math.sin(a)]
+    u /= np.hypot(*u)
+    found = _chip_position(xy, u, comp.body_length_mm, comp.body_width_mm,
+                           comp.termination_length_mm or 0.25 * comp.body_length_mm, p)
+    if found is None:
+        return None
+    (x, y), along_sigma = found
+    return FeaturePair("body", comp.ref, (comp.x_mm, comp.y_mm), (x, y), weight=BODY_WEIGHT,
+                       axis=(float(u[0]), float(u[1])), along_sigma=along_sigma)
+
+
+def _chip_position(xy: np.ndarray, u: np.ndarray, length_mm: float, width_mm: float,
+                   termination_mm: float, p: float) -> tuple[tuple[float, float], float] | None:
+    """A chip body's centre from its blob's pixels ``xy`` (WORLD mm), ``u`` the unit
+    vector along its length: the midpoint of the blob's extents along and across, and
+    how much less well it is known along than across (≥ 1); None when the blob is
+    shorter than the body without both its terminations.
+
+    Shape from focus grows a body's blob by the same edge bleed all round, which the
+    midpoint of the extents ignores (as the centroid does, but the centroid also moves
+    with every notch the focus leaves in the blob's outline). Along its length a chip's
+    blob may also lose its terminations' metal, in part or whole (a glinting
+    termination is unreliable), or gain solder heaped over a termination (it stands
+    above the body's presence threshold), and which end changed cannot be told from
+    the blob. The change Δ shows as the blob's growth along the length differing from
+    its growth across (the edge bleed alone grows both alike). A gain moves the midpoint
+    by up to Δ/2; a loss of up to a termination at each end, by up to
+    min(|Δ|, 2·termination − |Δ|)/2 (both terminations lost leave the ceramic middle,
+    centred). The position's uncertainty along is :data:`BODY_SIGMA_MM` plus that bound,
+    in units of :data:`BODY_SIGMA_MM`. A blob that lost more than both terminations is
+    not the body lying where it should (a tombstone's standing end).
+    """
+    v = np.array([-u[1], u[0]])
+    pa, pc = xy @ u, xy @ v
+    mid_a = 0.5 * (float(pa.min()) + float(pa.max()))
+    mid_c = 0.5 * (float(pc.min()) + float(pc.max()))
+    change = (float(np.ptp(pa)) - length_mm) - (float(np.ptp(pc)) - width_mm)
+    if change < -2.0 * (termination_mm + BODY_SIGMA_MM):
+        return None
+    bias = 0.5 * (change if change >= 0 else min(-change, max(2 * termination_mm + change, 0.0)))
+    x, y = mid_a * u + mid_c * v
+    return (float(x), float(y)), 1.0 + bias / BODY_SIGMA_MM
 
 
 def _hull_area_px(pts: np.ndarray) -> float:
@@ -345,17 +422,53 @@ def fit_rigid2d(src: np.ndarray, dst: np.ndarray, w: np.ndarray | None = None) -
     return T
 
 
-def _consensus(src: np.ndarray, dst: np.ndarray, w: np.ndarray, T0: np.ndarray) -> np.ndarray:
+def fit_pairs(pairs: list[FeaturePair]) -> np.ndarray:
+    """Rigid ``(3, 3)`` minimising Σ rᵢᵀ·Iᵢ·rᵢ over the pairs, rᵢ a pair's residual and
+    Iᵢ its :meth:`~FeaturePair.information`: :func:`fit_rigid2d` when every pair is
+    known alike in every direction, else Gauss-Newton in (rotation, translation) from
+    that fit."""
+    src = np.array([fp.board_xy for fp in pairs], np.float64)
+    dst = np.array([fp.world_xy for fp in pairs], np.float64)
+    T = fit_rigid2d(src, dst, np.array([fp.weight for fp in pairs]))
+    if all(fp.axis is None or fp.along_sigma == 1.0 for fp in pairs):
+        return T
+    info = np.array([fp.information() for fp in pairs])
+    for _ in range(10):
+        pred = apply2d(T, src)
+        c = pred.mean(axis=0)
+        # d(pred)/d(tx, ty, θ) for a rotation θ about c followed by a translation
+        J = np.zeros((len(src), 2, 3))
+        J[:, 0, 0] = J[:, 1, 1] = 1.0
+        J[:, 0, 2], J[:, 1, 2] = -(pred[:, 1] - c[1]), pred[:, 0] - c[0]
+        H = np.einsum("nia,nij,njb->ab", J, info, J)
+        g = np.einsum("nia,nij,nj->a", J, info, dst - pred)
+        tx, ty, th = np.linalg.lstsq(H, g, rcond=None)[0]
+        step = np.eye(3)
+        step[:2, :2] = [[math.cos(th), -math.sin(th)], [math.sin(th), math.cos(th)]]
+        step[:2, 2] = c - step[:2, :2] @ c + [tx, ty]
+        T = step @ T
+        if abs(th) < 1e-9 and math.hypot(tx, ty) < 1e-9:
+            break
+    return T
+
+
+def _residuals(pairs: list[FeaturePair], T: np.ndarray) -> np.ndarray:
+    return np.array([fp.residual(T) for fp in pairs])
+
+
+def _consensus(pairs: list[FeaturePair], T0: np.ndarray) -> np.ndarray:
     """Pairs agreeing with the best two-pair rigid hypothesis (or with ``T0``).
 
-    Every two pairs at least 1 mm apart propose a transform; its support is the summed
-    weight of the pairs within :data:`CONSENSUS_MM`, counted per pair kind so that a
-    fiducial counts like a body here (bodies are many, fiducials few and precise).
+    Every two pairs at least 1 mm apart propose a transform; its support is the number
+    of pairs within :data:`CONSENSUS_MM` of it (:meth:`~FeaturePair.residual`), so that
+    a fiducial counts like a body here (bodies are many, fiducials few and precise).
     """
-    n = len(src)
+    n = len(pairs)
+    src = np.array([fp.board_xy for fp in pairs])
+    dst = np.array([fp.world_xy for fp in pairs])
 
     def support(T):
-        r = np.hypot(*(apply2d(T, src) - dst).T)
+        r = _residuals(pairs, T)
         agree = r <= CONSENSUS_MM
         return int(agree.sum()), -float(np.sum(np.minimum(r, CONSENSUS_MM))), agree
 
@@ -396,18 +509,20 @@ def refine_with_features(pairs: list[FeaturePair], T0: np.ndarray, *, min_pairs:
     if len(pairs) < min_pairs and n_fid < 2:
         return None, {"pairs": len(pairs), "reason": f"only {len(pairs)} features found"}
     src = np.array([fp.board_xy for fp in pairs])
-    dst = np.array([fp.world_xy for fp in pairs])
-    w = np.array([fp.weight for fp in pairs])
-    keep = _consensus(src, dst, w, T0)
-    res = np.hypot(*(apply2d(T0, src) - dst).T)
+    keep = _consensus(pairs, T0)
+    res = _residuals(pairs, T0)
     T = T0
+
+    def fit(sel: np.ndarray) -> np.ndarray:
+        return fit_pairs([fp for fp, k in zip(pairs, sel) if k])
+
     for _ in range(len(pairs)):
         n_fid = sum(fp.kind == "fiducial" and k for fp, k in zip(pairs, keep))
         if keep.sum() < min_pairs and n_fid < 2:
             return None, {"pairs": len(pairs), "reason": "features disagree",
                           "residual_mm": np.round(res, 4).tolist()}
-        T = fit_rigid2d(src[keep], dst[keep], w[keep])
-        res = np.hypot(*(apply2d(T, src) - dst).T)
+        T = fit(keep)
+        res = _residuals(pairs, T)
         lim = max(3.0 * float(np.median(res[keep])), max_residual_mm)
         worst = int(np.argmax(np.where(keep, res, -1.0)))
         if res[worst] <= lim and keep.sum() > min_pairs:
@@ -420,8 +535,7 @@ def refine_with_features(pairs: list[FeaturePair], T0: np.ndarray, *, min_pairs:
             # of n pairs spread Σ d_j² about their centroid, d the pair's distance.
             rest = keep.copy()
             rest[worst] = False
-            T_del = fit_rigid2d(src[rest], dst[rest], w[rest])
-            r_del = np.hypot(*(apply2d(T_del, src) - dst).T)
+            r_del = _residuals(pairs, fit(rest))
             c = src[rest].mean(axis=0)
             spread = float(np.sum((src[rest] - c) ** 2))
             lever = float(np.sqrt(1.0 + 1.0 / rest.sum()

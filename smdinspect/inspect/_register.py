@@ -559,8 +559,7 @@ def register_board(
 
 def _support(pairs, T) -> tuple[int, list[str]]:
     """Features found where ``T`` puts them (within the consensus distance)."""
-    ok = [f"{fp.kind}:{fp.id}" for fp in pairs
-          if math.hypot(*(apply2d(T, np.array([fp.board_xy]))[0] - fp.world_xy)) <= CONSENSUS_MM]
+    ok = [f"{fp.kind}:{fp.id}" for fp in pairs if fp.residual(T) <= CONSENSUS_MM]
     return len(ok), ok
 
 
