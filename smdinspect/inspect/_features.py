@@ -225,7 +225,7 @@ def _body_pair(comp, height, reliable, T, p, *,
     u = T[:2, :2] @ [math.cos(a), math.sin(a)]
     u /= np.hypot(*u)
     found = _chip_position(xy, u, comp.body_length_mm, comp.body_width_mm,
-                           comp.termination_length_mm or 0.25 * comp.body_length_mm, p)
+                           comp.termination_length_mm or 0.25 * comp.body_length_mm)
     if found is None:
         return None
     (x, y), along_sigma = found
@@ -234,7 +234,7 @@ def _body_pair(comp, height, reliable, T, p, *,
 
 
 def _chip_position(xy: np.ndarray, u: np.ndarray, length_mm: float, width_mm: float,
-                   termination_mm: float, p: float) -> tuple[tuple[float, float], float] | None:
+                   termination_mm: float) -> tuple[tuple[float, float], float] | None:
     """A chip body's centre from its blob's pixels ``xy`` (WORLD mm), ``u`` the unit
     vector along its length: the midpoint of the blob's extents along and across, and
     how much less well it is known along than across (≥ 1); None when the blob is

@@ -243,13 +243,13 @@ def test_a_chip_centre_is_its_blobs_midpoint_and_a_lost_end_is_known_only_loosel
 
     p, L, W, c = 0.02, 1.6, 0.8, np.array([0.3, -0.2])
     xy, u = _chip_blob_xy(p, L, W, angle, c)
-    (x, y), s = _chip_position(xy, u, L, W, 0.3, p)
+    (x, y), s = _chip_position(xy, u, L, W, 0.3)
     assert np.hypot(x - c[0], y - c[1]) < p           # within the pixel grid's rounding
     assert s < 1.0 + p / BODY_SIGMA_MM        # edge bleed alike all round: as well as across
     # a glinting termination (0.3 mm) left out of the blob: the centre moves by half of
     # it along the length, and the uncertainty along covers that move
     xy, u = _chip_blob_xy(p, L, W, angle, c, cut_end=0.3)
-    (x, y), s = _chip_position(xy, u, L, W, 0.3, p)
+    (x, y), s = _chip_position(xy, u, L, W, 0.3)
     d = np.array([x, y]) - c
     assert abs(d @ u + 0.15) < 0.03 and abs(d @ [-u[1], u[0]]) < 0.02
     assert (s - 1.0) * BODY_SIGMA_MM == pytest.approx(0.15, abs=0.03)
@@ -257,13 +257,13 @@ def test_a_chip_centre_is_its_blobs_midpoint_and_a_lost_end_is_known_only_loosel
     # shorter still, the blob is not the body (a tombstone's standing end)
     xy, u = _chip_blob_xy(p, L, W, angle, c, cut_end=0.3)
     xy = xy[(xy - c) @ u > -L / 2 + 0.3 - p]
-    (x, y), s = _chip_position(xy, u, L, W, 0.3, p)
+    (x, y), s = _chip_position(xy, u, L, W, 0.3)
     assert np.hypot(x - c[0], y - c[1]) < p and s < 1.0 + p / BODY_SIGMA_MM
-    assert _chip_position(xy[(xy - c) @ u > -L / 2 + 0.45], u, L, W, 0.3, p) is None
+    assert _chip_position(xy[(xy - c) @ u > -L / 2 + 0.45], u, L, W, 0.3) is None
     # a notch shape from focus leaves inside the outline moves the centroid, not the
     # midpoint of the extents
     xy, u = _chip_blob_xy(p, L, W, angle, c, notch=True)
-    (x, y), s = _chip_position(xy, u, L, W, 0.3, p)
+    (x, y), s = _chip_position(xy, u, L, W, 0.3)
     assert np.hypot(x - c[0], y - c[1]) < p and s < 1.0 + p / BODY_SIGMA_MM
     assert np.hypot(*(xy.mean(axis=0) - c)) > 2 * p
 
