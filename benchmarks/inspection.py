@@ -156,6 +156,10 @@ def run_case(name: str, seed: int, mode: str, tmp: Path, cache: Path | None = No
         out["located"] = False
         out["reason"] = str(exc)
         result = None
+    if result is not None:
+        out["placement"] = placement_error(result.registration.transform,
+                                           np.array(labels["placement"]["board_to_world"]),
+                                           case["board"])
     got = {} if result is None else {j.id: j for j in result.joints}
     for lab in labels["joints"]:
         j = got.get(lab["id"])
@@ -172,6 +176,35 @@ def run_case(name: str, seed: int, mode: str, tmp: Path, cache: Path | None = No
             "measured": None if result is None
             else raw_numbers(result.measurements.get(lab["id"]))})
     return out
+
+
+def placement_error(T: np.ndarray, T_true: np.ndarray, board) -> dict:
+    """How far the registration's placement ``T`` is from the true one: its rotation
+    error (degrees) and the largest displacement of a component's centre (µm)."""
+    rot = math.degrees(math.atan2(T[1, 0], T[0, 0]) - math.atan2(T_true[1, 0], T_true[0, 0]))
+    worst = max((float(np.hypot(*((T - T_true) @ [c.x_mm, c.y_mm, 1.0])[:2]))
+                 for c in board.components), default=0.0)
+    return {"rotation_deg": round((rot + 180.0) % 360.0 - 180.0, 4),
+            "worst_part_um": round(1000.0 * worst, 1)}
+
+
+def placement_lines(cases: list[dict]) -> list[str]:
+    """The located boards' placement errors against the truth, with and without
+    fiducials: |rotation error| median / 90th percentile / max, the worst-placed part
+    median / 90th percentile and how many boards have a part > 40 µm off."""
+    lines = []
+    for fid in (False, True):
+        pl = [c["placement"] for c in cases if c.get("placement") and c["fiducials"] == fid]
+        if not pl:
+            continue
+        r = np.abs([p["rotation_deg"] for p in pl])
+        w = np.array([p["worst_part_um"] for p in pl])
+        lines.append(f"placement vs truth, {len(pl)} boards {'with' if fid else 'without'} "
+                     f"fiducials: |rotation error| median {np.median(r):.3f}, p90 "
+                     f"{np.percentile(r, 90):.3f}, max {r.max():.3f} deg; worst part median "
+                     f"{np.median(w):.0f}, p90 {np.percentile(w, 90):.0f} um, "
+                     f"{int((w > 40).sum())} boards > 40 um")
+    return lines
 
 
 def raw_numbers(m) -> dict | None:
@@ -384,6 +417,8 @@ def main(argv=None) -> int:
     s = summarise(cases)
     print(f"mode {args.mode}, {args.seeds} seeds {seeds[args.first]}..{seeds[args.first + args.boards - 1]}")
     print(report(s))
+    for line in placement_lines(cases):
+        print(line)
     if args.list:
         for title, key in (("misses", "misses"), ("false calls", "false_calls"),
                            ("field edge", "edge_calls")):
