@@ -40,3 +40,22 @@ def test_placement_lines_split_boards_by_fiducials_and_count_far_parts():
     assert "3 boards without fiducials" in lines[0] and "median 0.200" in lines[0]
     assert "max 0.300" in lines[0] and "2 boards > 40 um" in lines[0]
     assert "1 boards with fiducials" in lines[1] and "0 boards > 40 um" in lines[1]
+
+
+def test_the_true_placement_moves_with_the_maps_origin_under_the_parallax_correction():
+    # frames magnified about the image centre, output pixels 0.995 of the focused
+    # plane's, coordinates from the corner: the board plane lands (1 - 0.995) * centre
+    # lower; without the correction the truth is the scene's
+    from types import SimpleNamespace
+
+    labels = {"placement": {"board_to_world": rigid2d(2.0, 5.0, 4.0).tolist()}}
+    h = np.zeros((101, 201), np.float32)
+    par = {"corrected": True, "pixel_scale": 0.995}
+    s = SimpleNamespace(height_mm=h, pixel_size_mm=0.02 * 0.995,
+                        meta={"alignment": {"parallax": par}})
+    T = inspection.map_placement(labels, s)
+    assert np.allclose(T[:2, :2], rigid2d(2.0, 5.0, 4.0)[:2, :2])
+    assert np.allclose(T[:2, 2], [5.0 - 0.005 * 0.02 * 100, 4.0 - 0.005 * 0.02 * 50])
+    for meta in ({"alignment": {"parallax": {"corrected": False}}}, {}, None):
+        s = SimpleNamespace(height_mm=h, pixel_size_mm=0.02, meta=meta)
+        assert np.allclose(inspection.map_placement(labels, s), rigid2d(2.0, 5.0, 4.0))
