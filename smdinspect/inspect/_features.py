@@ -74,16 +74,6 @@ class FeaturePair:
     axis: tuple[float, float] | None = None
     along_sigma: float = 1.0
 
-    def residual(self, T: np.ndarray) -> float:
-        """How far ``T`` puts this feature from where it was measured (mm), the part
-        along a chip's length divided by :attr:`along_sigma`."""
-        d = apply2d(T, np.array([self.board_xy]))[0] - self.world_xy
-        if self.axis is None:
-            return float(math.hypot(*d))
-        u = np.asarray(self.axis)
-        a = float(d @ u)
-        return float(math.hypot(a / self.along_sigma, float(d @ [-u[1], u[0]])))
-
     def information(self) -> np.ndarray:
         """(2, 2) the pair's weight in the rigid fit, in each direction."""
         m = np.eye(2)
@@ -452,15 +442,25 @@ def fit_pairs(pairs: list[FeaturePair]) -> np.ndarray:
     return T
 
 
-def _residuals(pairs: list[FeaturePair], T: np.ndarray) -> np.ndarray:
-    return np.array([fp.residual(T) for fp in pairs])
+def residuals(pairs: list[FeaturePair], T: np.ndarray) -> np.ndarray:
+    """How far ``T`` puts each feature from where it was measured (mm), the parts along
+    and across a chip's length divided by its :attr:`~FeaturePair.along_sigma` and 1."""
+    if not pairs:
+        return np.zeros(0)
+    src = np.array([fp.board_xy for fp in pairs], np.float64)
+    d = apply2d(T, src) - np.array([fp.world_xy for fp in pairs], np.float64)
+    u = np.array([fp.axis or (1.0, 0.0) for fp in pairs], np.float64)
+    s = np.array([fp.along_sigma if fp.axis else 1.0 for fp in pairs], np.float64)
+    along = np.einsum("ni,ni->n", d, u)
+    across = d[:, 1] * u[:, 0] - d[:, 0] * u[:, 1]
+    return np.hypot(along / s, across)
 
 
 def _consensus(pairs: list[FeaturePair], T0: np.ndarray) -> np.ndarray:
     """Pairs agreeing with the best two-pair rigid hypothesis (or with ``T0``).
 
     Every two pairs at least 1 mm apart propose a transform; its support is the number
-    of pairs within :data:`CONSENSUS_MM` of it (:meth:`~FeaturePair.residual`), so that
+    of pairs within :data:`CONSENSUS_MM` of it (:func:`residuals`), so that
     a fiducial counts like a body here (bodies are many, fiducials few and precise).
     """
     n = len(pairs)
@@ -468,7 +468,7 @@ def _consensus(pairs: list[FeaturePair], T0: np.ndarray) -> np.ndarray:
     dst = np.array([fp.world_xy for fp in pairs])
 
     def support(T):
-        r = _residuals(pairs, T)
+        r = residuals(pairs, T)
         agree = r <= CONSENSUS_MM
         return int(agree.sum()), -float(np.sum(np.minimum(r, CONSENSUS_MM))), agree
 
@@ -510,7 +510,7 @@ def refine_with_features(pairs: list[FeaturePair], T0: np.ndarray, *, min_pairs:
         return None, {"pairs": len(pairs), "reason": f"only {len(pairs)} features found"}
     src = np.array([fp.board_xy for fp in pairs])
     keep = _consensus(pairs, T0)
-    res = _residuals(pairs, T0)
+    res = residuals(pairs, T0)
     T = T0
 
     def fit(sel: np.ndarray) -> np.ndarray:
@@ -522,7 +522,7 @@ def refine_with_features(pairs: list[FeaturePair], T0: np.ndarray, *, min_pairs:
             return None, {"pairs": len(pairs), "reason": "features disagree",
                           "residual_mm": np.round(res, 4).tolist()}
         T = fit(keep)
-        res = _residuals(pairs, T)
+        res = residuals(pairs, T)
         lim = max(3.0 * float(np.median(res[keep])), max_residual_mm)
         worst = int(np.argmax(np.where(keep, res, -1.0)))
         if res[worst] <= lim and keep.sum() > min_pairs:
@@ -535,7 +535,7 @@ def refine_with_features(pairs: list[FeaturePair], T0: np.ndarray, *, min_pairs:
             # of n pairs spread Σ d_j² about their centroid, d the pair's distance.
             rest = keep.copy()
             rest[worst] = False
-            r_del = _residuals(pairs, fit(rest))
+            r_del = residuals(pairs, fit(rest))
             c = src[rest].mean(axis=0)
             spread = float(np.sum((src[rest] - c) ** 2))
             lever = float(np.sqrt(1.0 + 1.0 / rest.sum()

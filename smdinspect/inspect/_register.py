@@ -55,6 +55,7 @@ from ._features import (
     global_body_pose,
     global_fiducial_pose,
     refine_with_features,
+    residuals,
 )
 from ._reference import Prism, reference_points, reference_prisms, render_reference
 
@@ -559,7 +560,8 @@ def register_board(
 
 def _support(pairs, T) -> tuple[int, list[str]]:
     """Features found where ``T`` puts them (within the consensus distance)."""
-    ok = [f"{fp.kind}:{fp.id}" for fp in pairs if fp.residual(T) <= CONSENSUS_MM]
+    ok = [f"{fp.kind}:{fp.id}" for fp, res in zip(pairs, residuals(pairs, T))
+          if res <= CONSENSUS_MM]
     return len(ok), ok
 
 
