@@ -21,6 +21,9 @@ Then our own renderer:
   boards: defects, finishes, lighting, placements, one lens in four ordinary with
   --align, each with its own pupil, in-focus blur and sensor): coverage and RMSE on
   reliable pixels, worst and pooled (goal RMSE <= 0.5 Δd at >= 85 % coverage) and the share of reliable pixels off by more than 1 Δd;
+  then the same boards photographed by the independent gather model (another light
+  model, a second texture, per-pixel defocus without occlusion, Gaussian or disc PSF,
+  vignetting: ``case_gather_stack``);
 * defect-free boards through the whole pipeline (reconstruct + inspect): median of
   measured − true max joint height, chips and gull-wings apart.
 
@@ -180,11 +183,13 @@ def independent_goals(tmp: Path) -> None:
               "noise-dominated by design)")
 
 
-def random_boards(tmp: Path, seeds=range(10000, 10004)) -> None:
-    """SFF-level accuracy on randomised boards (test seeds, never tuned on)."""
+def random_boards(tmp: Path, seeds=range(10000, 10004), renderer: str = "own") -> None:
+    """SFF-level accuracy on randomised boards (test seeds, never tuned on), rendered by
+    our own renderer or (``renderer="gather"``) the independent gather model."""
     from smdinspect.inspect import load_board
     from smdinspect.synth import Lighting
-    from smdinspect.synth._board_scene import case_imaging, random_board_case, scene_kwargs
+    from smdinspect.synth._board_scene import (case_gather_stack, case_imaging,
+                                               random_board_case, scene_kwargs)
 
     rows, sq, n_rel, n_all, n_far = [], 0.0, 0, 0, 0
     for name in ("demo_board", "dense_board"):
@@ -193,9 +198,13 @@ def random_boards(tmp: Path, seeds=range(10000, 10004)) -> None:
             case = random_board_case(board, seed)
             scene, _ = board_scene(case["board"], **scene_kwargs(case))
             optics, sensor = case_imaging(case)
-            stack = render_stack(scene, _sweep(float(scene.height_mm.max())), optics=optics,
-                                 sensor=sensor, lighting=Lighting(**case["lighting"]), seed=seed,
-                                 out=tmp / f"{name}-{seed}", previews=False)
+            z = _sweep(float(scene.height_mm.max()))
+            if renderer == "gather":
+                stack = case_gather_stack(case, scene, z, tmp / f"{name}-{seed}")
+            else:
+                stack = render_stack(scene, z, optics=optics, sensor=sensor,
+                                     lighting=Lighting(**case["lighting"]), seed=seed,
+                                     out=tmp / f"{name}-{seed}", previews=False)
             s = reconstruct(stack, FocusConfig(align=case["lens"] == "ordinary"))
             e = _errors(s, scene.height_mm)
             rows.append((f"{name[:-6]}/{seed}/{case['lens'][:4]}", s.coverage,
@@ -219,6 +228,10 @@ def main() -> None:
     with tempfile.TemporaryDirectory(prefix="smdinspect-accuracy-") as tmp:
         print("our renderer, randomised boards (test seeds):")
         random_boards(Path(tmp))
+    with tempfile.TemporaryDirectory(prefix="smdinspect-accuracy-") as tmp:
+        print("the same boards through the independent gather model (light, texture, "
+              "defocus, sensor; synth._suite.gather_board_stack):")
+        random_boards(Path(tmp), renderer="gather")
     with tempfile.TemporaryDirectory(prefix="smdinspect-accuracy-") as tmp:
         tmp = Path(tmp)
         cone = cone_scene(size_px=512, pixel_size_mm=0.015, height_mm=1.6, seed=3)

@@ -59,6 +59,7 @@ from smdinspect.synth._board_scene import (  # noqa: E402
     TEST_SEEDS,
     TUNING_SEEDS,
     board_scene,
+    case_gather_stack,
     case_imaging,
     random_board_case,
     scene_kwargs,
@@ -97,7 +98,8 @@ def _truth_surface(scene, seed: int):
                    z_mm=np.arange(-0.15, 1.8, STEP_MM))
 
 
-def _sff_surface(scene, case, tmp: Path, *, fixed_imaging: bool = False):
+def _sff_surface(scene, case, tmp: Path, *, fixed_imaging: bool = False,
+                 renderer: str = "own"):
     import dataclasses
 
     from smdinspect.optics import Optics
@@ -111,9 +113,13 @@ def _sff_surface(scene, case, tmp: Path, *, fixed_imaging: bool = False):
         sensor = None
     else:
         optics, sensor = case_imaging(case)
-    stack = render_stack(scene, sweep_mm(case["board"]), optics=optics, sensor=sensor,
-                         lighting=Lighting(**case["lighting"]), seed=case["seed"],
-                         out=tmp, previews=False, overwrite=True)
+    z = sweep_mm(case["board"])
+    if renderer == "gather":
+        stack = case_gather_stack(case, scene, z, tmp, optics=optics, sensor=sensor)
+    else:
+        stack = render_stack(scene, z, optics=optics, sensor=sensor,
+                             lighting=Lighting(**case["lighting"]), seed=case["seed"],
+                             out=tmp, previews=False, overwrite=True)
     cfg = inspection_focus_config(case["pixel_size_mm"])
     if case["lens"] == "ordinary":
         cfg = dataclasses.replace(cfg, align=True)
@@ -121,21 +127,22 @@ def _sff_surface(scene, case, tmp: Path, *, fixed_imaging: bool = False):
 
 
 def board_surface(name: str, seed: int, mode: str, tmp: Path, cache: Path | None = None, *,
-                  fixed_imaging: bool = False):
+                  fixed_imaging: bool = False, renderer: str = "own"):
     """(case, scene, labels, surface) of one randomised board: the surface reconstructed
     from its rendered stack (``mode`` "sff"; kept in and reused from ``cache``) or the
     noisy true height map ("truth")."""
     board = load_board(BOARDS[name])
     case = random_board_case(board, seed)
     scene, labels = board_scene(case["board"], **scene_kwargs(case))
-    tag = "-fixed" if fixed_imaging else ""
+    tag = ("-fixed" if fixed_imaging else "") + ("-gather" if renderer == "gather" else "")
     kept = None if cache is None or mode != "sff" else cache / f"{name}-{seed}{tag}.pkl"
     if kept is not None and kept.exists():
         surface = pickle.loads(kept.read_bytes())
     elif mode == "truth":
         surface = _truth_surface(scene, seed)
     else:
-        surface = _sff_surface(scene, case, tmp / f"{name}-{seed}", fixed_imaging=fixed_imaging)
+        surface = _sff_surface(scene, case, tmp / f"{name}-{seed}", fixed_imaging=fixed_imaging,
+                               renderer=renderer)
         if kept is not None:
             kept.parent.mkdir(parents=True, exist_ok=True)
             part = kept.with_suffix(".part")
@@ -145,9 +152,9 @@ def board_surface(name: str, seed: int, mode: str, tmp: Path, cache: Path | None
 
 
 def run_case(name: str, seed: int, mode: str, tmp: Path, cache: Path | None = None, *,
-             fixed_imaging: bool = False) -> dict:
+             fixed_imaging: bool = False, renderer: str = "own") -> dict:
     case, _, labels, surface = board_surface(name, seed, mode, tmp, cache,
-                                             fixed_imaging=fixed_imaging)
+                                             fixed_imaging=fixed_imaging, renderer=renderer)
     out = {"board": name, "seed": seed, "lens": case["lens"], "finish": case["finish"],
            "fiducials": case["fiducials"], "edge": case["edge"], "located": True, "joints": []}
     try:
@@ -419,6 +426,11 @@ def main(argv=None) -> int:
                     help="render every board with the default optics and sensor instead of the "
                          "case's drawn pupil, in-focus blur and sensor (the suite before "
                          "2026-12-04)")
+    ap.add_argument("--renderer", choices=("own", "gather"), default="own",
+                    help="gather: photograph each board with the independent gather model "
+                         "(smdinspect.synth._suite.gather_board_stack: another light model, "
+                         "a second texture, per-pixel defocus without occlusion, a Gaussian "
+                         "or disc PSF, vignetting) instead of our own renderer")
     args = ap.parse_args(argv)
     seeds = TEST_SEEDS if args.seeds == "test" else TUNING_SEEDS
     names = list(BOARDS) if args.board == "both" else [args.board]
@@ -429,10 +441,11 @@ def main(argv=None) -> int:
             for name in names:
                 seed = seeds[args.first + k]
                 cases.append(run_case(name, seed, args.mode, Path(tmp), args.cache,
-                                           fixed_imaging=args.fixed_imaging))
+                                      fixed_imaging=args.fixed_imaging,
+                                      renderer=args.renderer))
                 print(f"  {name} seed {seed}: {time.perf_counter() - t0:.0f} s", file=sys.stderr)
     s = summarise(cases)
-    print(f"mode {args.mode}, {args.seeds} seeds {seeds[args.first]}..{seeds[args.first + args.boards - 1]}")
+    print(f"mode {args.mode}, renderer {args.renderer}, {args.seeds} seeds {seeds[args.first]}..{seeds[args.first + args.boards - 1]}")
     print(report(s))
     for line in placement_lines(cases):
         print(line)

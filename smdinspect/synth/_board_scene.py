@@ -1535,6 +1535,28 @@ def case_imaging(case: Mapping[str, Any]):
     return optics, SensorConfig(**im["sensor"])
 
 
+def case_gather_stack(case: Mapping[str, Any], scene, z_mm, out, *, optics=None,
+                      sensor=None):
+    """Photograph a :func:`random_board_case`'s scene with the independent gather model
+    (:func:`~smdinspect.synth._suite.gather_board_stack`) at ``z_mm`` into ``out``: the
+    case's optics and sensor (:func:`case_imaging`, or those given), vignetting 0–0.3
+    and a Gaussian or disc PSF drawn from a stream of the case's own (the draws of our
+    own renderer's cases are unchanged). Returns the opened stack."""
+    from ._render import SensorConfig
+    from ._suite import GatherNoise, gather_board_stack
+
+    if optics is None:
+        optics, sensor = case_imaging(case)
+    sensor = sensor or SensorConfig()
+    rng = np.random.default_rng([int(case["seed"]), 0x6A7])
+    noise = GatherNoise(photons_full_scale=sensor.full_well_e,
+                        read_noise=sensor.read_noise_e / sensor.full_well_e,
+                        exposure=sensor.exposure, flicker=sensor.flicker,
+                        vignetting=float(rng.uniform(0.0, 0.3)), bit_depth=sensor.bit_depth)
+    return gather_board_stack(scene, z_mm, out, optics=optics, noise=noise,
+                              seed=int(case["seed"]), psf=("gauss", "disc")[int(rng.integers(2))])
+
+
 def scene_kwargs(case: Mapping[str, Any]) -> dict[str, Any]:
     """Keyword arguments of :func:`board_scene` for a :func:`random_board_case`."""
     return {k: case[k] for k in ("defects", "params", "finish", "offset_mm", "rotate_deg",

@@ -49,9 +49,11 @@ __all__ = [
     "bore",
     "case_stack",
     "cone",
+    "gather_board_stack",
     "half_textured",
     "random_case",
     "render_gather",
+    "shade_dome",
     "slanted_plane",
     "sphere_cap",
     "steps",
@@ -197,6 +199,115 @@ def render_gather(
         rng = np.random.default_rng(np.random.SeedSequence([seed, n, 0x6A7E]))
         frames.append(_sensor(img, cfg, vig, rng))
     return frames
+
+
+def gather_board_stack(scene, z_mm: Sequence[float], out: str | Path, *, optics,
+                       noise: GatherNoise, seed: int, psf: str = "gauss"):
+    """Photograph a board :class:`~smdinspect.synth.Scene` with the gather model instead
+    of :func:`~smdinspect.synth.render_stack`, write it as a stack directory at ``out``
+    and return it opened (a :class:`~smdinspect.stack.FocalStack`).
+
+    Everything but the geometry and the albedo differs from our own renderer: the light
+    (:func:`shade_dome`, not Blinn-Phong under a ring), a second texture laid over the
+    albedo, the defocus (each pixel gathers the blur of its own depth, no occlusion, a
+    Gaussian or a disc PSF) and the sensor (:class:`GatherNoise`, with vignetting). The
+    blur grows at ``optics.blur_rate_px_per_mm()`` from ``optics.sigma0_px``. Through an
+    ordinary lens (``optics.telecentric`` False) a point at height h in the frame focused
+    at z lands ``optics.scale_at(h, z)`` times as far from the image centre as in the
+    scene, as a moving camera sees it (two fixed-point steps of the inverse map).
+    """
+    import cv2
+
+    from ..stack import FocalStack, StackWriter
+
+    rng = np.random.default_rng(np.random.SeedSequence([_seed(seed), 0x5EED]))
+    z = np.asarray(z_mm, np.float64).reshape(-1)
+    h = np.asarray(scene.height_mm, np.float32)
+    rad, light = shade_dome(scene, rng)
+    b = float(optics.blur_rate_px_per_mm())
+    s0 = float(optics.sigma0_px)
+    hh, ww = h.shape
+    top = min(b * float(np.max(np.abs(z[:, None] - np.array([h.min(), h.max()])))),
+              2.0 * max(hh, ww))
+    levels = [0.0, _LADDER_LO]
+    while levels[-1] < top:
+        levels.append(levels[-1] * _LADDER_RATIO)
+    bank = np.stack([_blur(rad, s0, d, psf) for d in levels])
+    vig = _vignette(h.shape, noise.vignetting)
+    rows, cols = np.indices(h.shape, dtype=np.float32)
+    cy, cx = (hh - 1) / 2.0, (ww - 1) / 2.0
+    diffs = np.diff(z)
+    rig = {"step_mm": float(-diffs[0])} if z.size > 1 and np.allclose(diffs, diffs[0]) else {}
+    writer = StackWriter(Path(out), pixel_size_mm=scene.pixel_size_mm, rig=rig,
+                         meta={"generator": "smdinspect.synth.gather_board_stack",
+                               "scene": scene.name, "seed": int(seed), "psf": psf,
+                               "shading": light,
+                               "noise": {k: getattr(noise, k)
+                                         for k in GatherNoise.__dataclass_fields__}})
+    for n, zn in enumerate(z):
+        img = _gather(bank, b * np.abs(np.float32(zn) - h))
+        if not optics.telecentric:
+            # output pixel y shows the scene point x with y - c = s(h(x), z)·(x - c)
+            mx, my = cols, rows
+            for _ in range(2):
+                hx = cv2.remap(h, mx, my, cv2.INTER_LINEAR, borderMode=cv2.BORDER_REPLICATE)
+                s = optics.scale_at(hx, float(zn)).astype(np.float32)
+                mx, my = cx + (cols - cx) / s, cy + (rows - cy) / s
+            img = cv2.remap(img, mx, my, cv2.INTER_CUBIC, borderMode=cv2.BORDER_REFLECT)
+        frame_rng = np.random.default_rng(np.random.SeedSequence([_seed(seed), n, 0x6A7E]))
+        writer.add_frame(_sensor(np.maximum(img, 0.0), noise, vig, frame_rng), float(zn))
+    return FocalStack.open(out)
+
+
+def shade_dome(scene, rng: np.random.Generator) -> tuple[np.ndarray, dict]:
+    """In-focus radiance of ``scene`` under a light model unlike
+    :func:`~smdinspect.synth.shade`'s, drawn from ``rng``; returns (radiance, params).
+
+    Diffuse: a dome (irradiance ``(1 + n_z)/2``) mixed with one key light at a random
+    azimuth and elevation, 1 for a flat surface. Specular (``scene.specular``): a coaxial
+    lobe ``exp(−tan²θ / m²)`` (flat metal mirrors the light back: glints clip) plus a ring
+    lobe around the tilt ``(90° − elevation)/2`` that mirrors a ring light into the lens,
+    tinted by the metal's colour, over a dim reflection of the surroundings. A second
+    texture (band-limited noise or grain at a random frequency and contrast) modulates
+    the albedo, so the scene's texture statistics are not only our own.
+    """
+    h = np.asarray(scene.height_mm, np.float64)
+    p = float(scene.pixel_size_mm)
+    gy, gx = np.gradient(h, p)
+    gy = -gy  # rows run down, y up
+    norm = np.sqrt(1.0 + gx * gx + gy * gy)
+    nx, ny, nz = -gx / norm, -gy / norm, 1.0 / norm
+    tan2 = gx * gx + gy * gy
+    theta = np.arctan(np.sqrt(tan2))
+    az, el = math.radians(rng.uniform(0, 360)), math.radians(rng.uniform(30, 70))
+    lx, ly, lz = math.cos(el) * math.cos(az), math.cos(el) * math.sin(az), math.sin(el)
+    key = float(rng.uniform(0.2, 0.6))
+    diffuse = (1 - key) * (1 + nz) / 2 + key * np.maximum(nx * lx + ny * ly + nz * lz, 0) / lz
+    m = float(rng.uniform(0.05, 0.25))
+    ring_el = float(rng.uniform(20, 60))
+    ring_w = math.radians(float(rng.uniform(4, 12)))
+    g_coax, g_ring = float(rng.uniform(0.4, 3.0)), float(rng.uniform(0.3, 1.5))
+    env = float(rng.uniform(0.05, 0.2))
+    lobes = (g_coax * np.exp(-tan2 / (m * m))
+             + g_ring * np.exp(-0.5 * ((theta - math.radians((90 - ring_el) / 2)) / ring_w) ** 2))
+    kind = "band" if rng.random() < 0.5 else "grain"
+    freq = float(np.exp(rng.uniform(math.log(0.05), math.log(0.3))))
+    contrast = float(rng.uniform(0.0, 0.3))
+    size = max(h.shape)
+    tex = texture(kind, size, seed=int(rng.integers(1 << 30)), freq_cyc_px=freq,
+                  contrast=1.0)[: h.shape[0], : h.shape[1]]
+    alb = np.asarray(scene.albedo, np.float64)
+    mod = 1.0 + contrast * 2.0 * (tex - float(tex.mean()))
+    alb = np.clip(alb * (mod if alb.ndim == 2 else mod[:, :, None]), 0.0, 1.0)
+    spec = np.zeros(h.shape) if scene.specular is None else np.asarray(scene.specular, np.float64)
+    if alb.ndim == 3:
+        diffuse, lobes, spec = diffuse[:, :, None], lobes[:, :, None], spec[:, :, None]
+    tint = 0.5 + 0.5 * alb
+    rad = (1 - spec) * alb * diffuse + spec * (env * alb + lobes * tint)
+    params = {"key_light": [math.degrees(az), math.degrees(el), key], "roughness": m,
+              "ring_elevation_deg": ring_el, "coaxial_gain": g_coax, "ring_gain": g_ring,
+              "environment": env, "texture": [kind, freq, contrast]}
+    return np.ascontiguousarray(rad, np.float32), params
 
 
 def _blur(rad: np.ndarray, s0: float, defocus: float, psf: str) -> np.ndarray:

@@ -132,3 +132,22 @@ def test_heights_only_fit_is_the_full_fit_heights(shape, monkeypatch):
         assert 0 < interior.sum() < interior.size
         np.testing.assert_array_equal(interior, full.interior)
         np.testing.assert_array_equal(height, full.height_mm)
+
+
+def test_power_fit_judges_a_clean_gaussian_peak_by_its_noise_not_its_shape(curves):
+    """Pertuz's R measures the noise on a focus curve: a clean peak shaped as a Gaussian
+    (a narrow-band texture, a disc-like PSF) is as reliable under the power fit as under
+    a Gaussian one, while the same peak with noise of 15 % of its height is not."""
+    z, mu, sigma, amp = curves
+    sigma = np.maximum(sigma, 0.08)   # wide peaks: 5-7 samples of support, R is judged
+    clean = _gauss_curves(z, mu, sigma, amp)
+    fit = fit_peaks(_track(clean), z, method=FitMethod.POWER, power=1.0)
+    assert fit.interior.all()
+    assert np.all(fit.reliability_db > 40)
+    # the power law alone misjudges it: this is what R read before both shapes were tried
+    p1 = (amp / (1 + ((z[:, None, None] - mu) / sigma) ** 2)).astype(np.float32)
+    assert np.all(fit_peaks(_track(p1), z, method=FitMethod.POWER, power=1.0).reliability_db > 40)
+    rng = np.random.default_rng(3)
+    noisy = clean + (0.15 * amp * rng.standard_normal(clean.shape)).astype(np.float32)
+    r = fit_peaks(_track(noisy), z, method=FitMethod.POWER, power=1.0).reliability_db
+    assert np.median(r) < 26

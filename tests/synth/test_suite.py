@@ -237,3 +237,62 @@ def test_bad_arguments_raise_input_error(call, match):
     rad, h = slanted_plane(size_px=32)
     with pytest.raises(InputError, match=match):
         call(rad, h)
+
+
+# --------------------------------------------------------------------------------------
+# A board scene photographed by the gather model (benchmarks/inspection.py --renderer gather)
+
+
+def _flat_scene(albedo, height_mm=0.0, specular=None, pixel_mm=0.02):
+    from smdinspect.synth import Scene
+
+    h = np.full(albedo.shape[:2], height_mm, np.float32)
+    return Scene(height_mm=h, albedo=albedo, pixel_size_mm=pixel_mm, specular=specular)
+
+
+def test_shade_dome_keeps_a_flat_matte_surface_at_its_albedo_and_flat_metal_glints():
+    from smdinspect.synth._suite import shade_dome
+
+    alb = np.full((64, 64), 0.5, np.float32)
+    for seed in range(5):
+        rad, params = shade_dome(_flat_scene(alb), np.random.default_rng(seed))
+        # the second texture modulates the albedo around its mean, nothing else changes
+        assert abs(float(rad.mean()) - 0.5) < 0.02, params
+        spec = np.ones_like(alb)
+        metal, params = shade_dome(_flat_scene(alb, specular=spec), np.random.default_rng(seed))
+        # flat metal mirrors the coaxial light: env·albedo + coaxial gain·tint (+ the ring's tail)
+        assert float(metal.mean()) > 0.75 * 0.4 * params["coaxial_gain"], params
+
+
+def test_gather_board_stack_sees_heights_and_the_parallax_of_a_moving_camera(tmp_path):
+    import dataclasses
+
+    from smdinspect.optics import Optics
+    from smdinspect.synth._suite import gather_board_stack
+
+    h0 = 0.6
+    scene = _flat_scene(_dots(160, 60.0), height_mm=h0)
+    optics = dataclasses.replace(Optics.for_pixel_size(0.02, telecentric=False),
+                                 aperture_mm=0.2)   # sharp dots: their centres, not blur
+    z = [-2.0, h0, 4.0]
+
+    def radii(stack):
+        out = []
+        for k in range(len(stack)):
+            img = stack.read_frame(k).astype(np.float32)
+            r = _dot_radii(img.mean(axis=2) if img.ndim == 3 else img)
+            assert len(r) == 8
+            out.append(r.mean())
+        return np.array(out)
+
+    stack = gather_board_stack(scene, z, tmp_path / "ord", optics=optics, noise=OFF16,
+                               seed=3)
+    assert isinstance(stack, FocalStack) and len(stack) == 3
+    # a point at height h0 seen from the frame focused at z: scale_at(h0, z) times as far
+    # from the centre as in the frame focused on it (±2.3 % here)
+    r = radii(stack)
+    np.testing.assert_allclose(r / r[1], optics.scale_at(h0, np.array(z)), rtol=0.002)
+    tele = gather_board_stack(scene, z, tmp_path / "tele",
+                              optics=dataclasses.replace(optics, telecentric=True),
+                              noise=OFF16, seed=3)
+    np.testing.assert_allclose(radii(tele), r[1], rtol=0.002)
