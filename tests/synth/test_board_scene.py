@@ -460,3 +460,32 @@ def test_arc_fillets_keep_the_fillet_height_and_change_the_profile(demo, ok_scen
     for bad in ((0.5, 1.5), (0.8, 0.2), "x"):
         with pytest.raises(InputError, match="fillet_curvature"):
             board_scene(demo, fillet_curvature=bad, **PLACE)
+
+
+def test_case_gather_stack_photographs_a_case_with_its_own_imaging(tmp_path):
+    """A randomised case through the independent gather model: the case's sensor, a PSF
+    and vignetting drawn from a stream of its own (the same case, the same frames), and
+    the board sharpest in the frame focused on it."""
+    import json
+
+    from smdinspect.synth._board_scene import (case_gather_stack, case_imaging,
+                                               random_board_case, scene_kwargs)
+
+    case = random_board_case(load_board(REFS / "demo_board.json"), 10001)
+    scene, _ = board_scene(case["board"], **scene_kwargs(case))
+    z = [0.0, 0.6, 1.2]
+    a = case_gather_stack(case, scene, z, tmp_path / "a")
+    b = case_gather_stack(case, scene, z, tmp_path / "b")
+    assert len(a) == 3
+    for k in range(3):
+        np.testing.assert_array_equal(a.read_frame(k), b.read_frame(k))
+    meta = json.loads((tmp_path / "a" / "stack.json").read_text())["meta"]
+    assert meta["psf"] in ("gauss", "disc")
+    assert meta["noise"]["photons_full_scale"] == case_imaging(case)[1].full_well_e
+    board = scene.height_mm < 0.01
+
+    def sharpness(k):
+        g = a.read_frame(k).astype(np.float32).mean(axis=2)
+        return float(np.mean(np.abs(cv2.Laplacian(g, cv2.CV_32F))[board]))
+
+    assert sharpness(0) > 1.5 * sharpness(2)
