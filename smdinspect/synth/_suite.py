@@ -183,13 +183,7 @@ def render_gather(
     if not isinstance(cfg, GatherNoise):
         raise InputError(f"noise must be a GatherNoise; got {type(noise).__name__}")
     seed = _seed(seed)
-    hh, ww = h.shape
-    top = min(b * float(np.max(np.abs(z[:, None] - np.array([h.min(), h.max()])))),
-              2.0 * max(hh, ww))
-    levels = [0.0, _LADDER_LO]
-    while levels[-1] < top:
-        levels.append(levels[-1] * _LADDER_RATIO)
-    bank = np.stack([_blur(rad, s0, d, psf) for d in levels])
+    bank = _defocus_bank(rad, h, z, b, s0, psf)
     vig = _vignette(h.shape, cfg.vignetting)
     frames = []
     for n, zn in enumerate(z):
@@ -227,12 +221,7 @@ def gather_board_stack(scene, z_mm: Sequence[float], out: str | Path, *, optics,
     b = float(optics.blur_rate_px_per_mm())
     s0 = float(optics.sigma0_px)
     hh, ww = h.shape
-    top = min(b * float(np.max(np.abs(z[:, None] - np.array([h.min(), h.max()])))),
-              2.0 * max(hh, ww))
-    levels = [0.0, _LADDER_LO]
-    while levels[-1] < top:
-        levels.append(levels[-1] * _LADDER_RATIO)
-    bank = np.stack([_blur(rad, s0, d, psf) for d in levels])
+    bank = _defocus_bank(rad, h, z, b, s0, psf)
     vig = _vignette(h.shape, noise.vignetting)
     rows, cols = np.indices(h.shape, dtype=np.float32)
     cy, cx = (hh - 1) / 2.0, (ww - 1) / 2.0
@@ -308,6 +297,19 @@ def shade_dome(scene, rng: np.random.Generator) -> tuple[np.ndarray, dict]:
               "ring_elevation_deg": ring_el, "coaxial_gain": g_coax, "ring_gain": g_ring,
               "environment": env, "texture": [kind, freq, contrast]}
     return np.ascontiguousarray(rad, np.float32), params
+
+
+def _defocus_bank(rad: np.ndarray, h: np.ndarray, z: np.ndarray, b: float, s0: float,
+                  psf: str) -> np.ndarray:
+    """The radiance blurred at every level of the defocus ladder (0, then
+    :data:`_LADDER_LO` × :data:`_LADDER_RATIO`ⁿ px) up to the largest defocus
+    ``b·|z − h|`` of the sweep (at most twice the image's side)."""
+    top = min(b * float(np.max(np.abs(z[:, None] - np.array([h.min(), h.max()])))),
+              2.0 * max(h.shape))
+    levels = [0.0, _LADDER_LO]
+    while levels[-1] < top:
+        levels.append(levels[-1] * _LADDER_RATIO)
+    return np.stack([_blur(rad, s0, d, psf) for d in levels])
 
 
 def _blur(rad: np.ndarray, s0: float, defocus: float, psf: str) -> np.ndarray:
