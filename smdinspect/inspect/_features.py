@@ -442,6 +442,44 @@ def fit_pairs(pairs: list[FeaturePair]) -> np.ndarray:
     return T
 
 
+def placement_covariance(pairs: list[FeaturePair], T: np.ndarray):
+    """How well the pairs fix the placement ``T`` fitted to them (:func:`fit_pairs`):
+    ``(cov, centre)``, the (3, 3) covariance of a translation (mm) and a rotation
+    (rad) about ``centre`` (the pairs' world centroid), s²·H⁻¹ with H = Σ JᵢᵀIᵢJᵢ the
+    weighted fit's normal matrix and s² = Σ rᵢᵀIᵢrᵢ / (2n − 3) the residuals' own
+    scale (the pairs' weights are relative). None without a degree of freedom or with a
+    singular H."""
+    n = len(pairs)
+    if n < 2 or 2 * n - 3 <= 0:
+        return None
+    src = np.array([fp.board_xy for fp in pairs], np.float64)
+    dst = np.array([fp.world_xy for fp in pairs], np.float64)
+    info = np.array([fp.information() for fp in pairs])
+    pred = apply2d(T, src)
+    c = pred.mean(axis=0)
+    J = np.zeros((n, 2, 3))
+    J[:, 0, 0] = J[:, 1, 1] = 1.0
+    J[:, 0, 2], J[:, 1, 2] = -(pred[:, 1] - c[1]), pred[:, 0] - c[0]
+    H = np.einsum("nia,nij,njb->ab", J, info, J)
+    r = dst - pred
+    s2 = float(np.einsum("ni,nij,nj->", r, info, r)) / (2 * n - 3)
+    try:
+        cov = s2 * np.linalg.inv(H)
+    except np.linalg.LinAlgError:
+        return None
+    return (cov, c) if np.all(np.isfinite(cov)) else None
+
+
+def position_covariance(cov, centre, T: np.ndarray, board_xy) -> np.ndarray:
+    """(2, 2) covariance (mm², BOARD frame) of where the placement puts the board point
+    ``board_xy``, from :func:`placement_covariance`'s ``(cov, centre)``."""
+    w = apply2d(T, np.asarray(board_xy, np.float64)[None])[0]
+    Jp = np.array([[1.0, 0.0, -(w[1] - centre[1])], [0.0, 1.0, w[0] - centre[0]]])
+    S = Jp @ np.asarray(cov, np.float64) @ Jp.T
+    R = T[:2, :2]
+    return R.T @ S @ R
+
+
 def residuals(pairs: list[FeaturePair], T: np.ndarray) -> np.ndarray:
     """How far ``T`` puts each feature from where it was measured (mm), the parts along
     and across a chip's length divided by its :attr:`~FeaturePair.along_sigma` and 1."""
@@ -545,7 +583,10 @@ def refine_with_features(pairs: list[FeaturePair], T0: np.ndarray, *, min_pairs:
         elif res[worst] <= lim:
             break
         keep[worst] = False
+    fixed = placement_covariance([fp for fp, k in zip(pairs, keep) if k], T)
     info = {
+        "covariance": None if fixed is None else {"cov": fixed[0].tolist(),
+                                                  "centre": fixed[1].tolist()},
         "used": [f"{fp.kind}:{fp.id}" for fp, k in zip(pairs, keep) if k],
         "rejected": [f"{fp.kind}:{fp.id}" for fp, k in zip(pairs, keep) if not k],
         "residual_mm": {f"{fp.kind}:{fp.id}": round(float(r), 5) for fp, r in zip(pairs, res)},

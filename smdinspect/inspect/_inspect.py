@@ -10,6 +10,7 @@ import numpy as np
 from ..errors import BoardNotLocatedError, InputError
 from ..sff._surface import clipped_white
 from ._config import InspectConfig
+from ._features import position_covariance
 from ._geometry import apply2d
 from ._measure import (
     MeasureContext,
@@ -181,6 +182,14 @@ def _inspect_located(surface, board, reg: RegistrationResult, cfg: InspectConfig
 
     # 4. Measure and judge.
     jm, cm = measure_board(board, ctx, cfg)
+    feat = reg.meta.get("features") or {}
+    fixed = feat.get("covariance")
+    if fixed and "features" in reg.method and not feat.get("rejected_fit"):
+        # how well the pairs the placement was fitted to fix it at each part (a
+        # rotation poorly fixed by a compact cluster moves far parts most)
+        for comp in board.components:
+            cm[comp.ref].offset_cov_mm2 = position_covariance(
+                fixed["cov"], fixed["centre"], reg.transform, (comp.x_mm, comp.y_mm))
     comps = []
     joints = []
     for comp in board.components:

@@ -204,6 +204,9 @@ class ComponentMeasurement:
     #: how far the body's middle may lie from the offset read, along the part's own x
     #: and y (its blob's ends could not be told apart: :func:`_body_middle`)
     offset_slack_mm: tuple[float, float] = (0.0, 0.0)
+    #: (2, 2) covariance (mm², BOARD frame) of where the placement puts the part, from
+    #: the registration's fit (:func:`._features.position_covariance`); None: not known
+    offset_cov_mm2: np.ndarray | None = field(default=None, repr=False)
     #: gull-wing parts: how far the body is turned from its nominal rotation (deg,
     #: counter-clockwise; :func:`_body_turn`), NaN where not measured
     turn_deg: float = NAN

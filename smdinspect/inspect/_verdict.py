@@ -206,11 +206,23 @@ def judge_component(comp, m: ComponentMeasurement, config: InspectConfig) -> Com
         reason = (f"only {m.present_fraction:.0%} of the body footprint stands at body height "
                   f"(< {config.component_present_fraction:.0%})")
     elif all(map(math.isfinite, m.offset_mm)):
-        why = _misplaced(comp, np.asarray(m.offset_mm, np.float64), m.offset_slack_mm,
-                         turn_deg=m.turn_deg)
+        offset = np.asarray(m.offset_mm, np.float64)
+        why = _misplaced(comp, offset, m.offset_slack_mm, turn_deg=m.turn_deg)
         if why:
             verdict = Verdict.COMPONENT_SHIFTED
             reason = why
+        elif m.offset_cov_mm2 is not None:
+            # Within the limit as read, but the placement it is read against is itself
+            # known only so well here: never a silent pass of a shift it may hide.
+            why = _misplaced(comp, offset, m.offset_slack_mm, turn_deg=m.turn_deg,
+                             margin_cov=m.offset_cov_mm2)
+            if why:
+                sd = 1000.0 * math.sqrt(max(float(np.max(np.linalg.eigvalsh(
+                    m.offset_cov_mm2))), 0.0))
+                verdict = Verdict.UNRELIABLE
+                reason = (f"may be shifted: in place as read, but the board's placement "
+                          f"is known here only to σ = {sd:.0f} µm, and {PLACEMENT_K:g}σ "
+                          f"further out: {why}; not judged")
     return ComponentResult(
         ref=comp.ref, kind=comp.kind, package=comp.package, verdict=verdict, reason=reason,
         present_fraction=m.present_fraction, body_height_mm=m.body_height_mm,
@@ -219,15 +231,23 @@ def judge_component(comp, m: ComponentMeasurement, config: InspectConfig) -> Com
 
 #: IPC-A-610 Class 2: side overhang up to 50 % of the termination (lead) width.
 MAX_SIDE_OVERHANG = 0.5
+#: A part is passed in place only while its displacement, taken this many standard
+#: deviations of the board's placement at the part further out, stays within the limits
+#: (rule 4): else ``unreliable``, "may be shifted".
+PLACEMENT_K = 2.0
 
 
-def _misplaced(comp, offset: np.ndarray, slack=(0.0, 0.0), *, turn_deg: float = 0.0) -> str:
+def _misplaced(comp, offset: np.ndarray, slack=(0.0, 0.0), *, turn_deg: float = 0.0,
+               margin_cov: np.ndarray | None = None) -> str:
     """Why the part's displacement ``offset`` (BOARD frame, mm) is a defect ("" if not).
 
     ``slack``: how far the body's middle may lie from it along the part's own x and y;
     a displacement counts only by what it shows beyond that. ``turn_deg``: how far the
     body is turned (counter-clockwise; NaN or 0: not turned); each joint is then
-    displaced by the offset plus what the turn moves its pad's centre."""
+    displaced by the offset plus what the turn moves its pad's centre. ``margin_cov``:
+    (2, 2) covariance (mm²) of the placement at the part; each displacement is then
+    taken :data:`PLACEMENT_K` σ (along its direction) further from zero, towards the
+    limit (what it may be, not what it shows)."""
     worst = ""
     worst_v = 0.0
     centred_body = comp.body_polygon_mm() - [comp.x_mm, comp.y_mm]
@@ -237,10 +257,13 @@ def _misplaced(comp, offset: np.ndarray, slack=(0.0, 0.0), *, turn_deg: float = 
     turn = np.array([[math.cos(t) - 1.0, -math.sin(t)], [math.sin(t), math.cos(t) - 1.0]])
 
     def shown(moved: np.ndarray, d: np.ndarray) -> float:
-        """Displacement ``moved`` along ``d`` less the slack along it (towards zero)."""
+        """Displacement ``moved`` along ``d`` less the slack along it (towards zero),
+        plus the placement's margin along it (away from zero)."""
         x = float(moved @ d)
         s = abs(float(d @ ex)) * slack[0] + abs(float(d @ ey)) * slack[1]
-        return math.copysign(max(abs(x) - s, 0.0), x)
+        grow = 0.0 if margin_cov is None else PLACEMENT_K * math.sqrt(
+            max(float(d @ margin_cov @ d), 0.0))
+        return math.copysign(max(abs(x) - s, 0.0) + grow, x)
 
     for j in comp.joints:
         pad = np.asarray(j.polygon_mm, np.float64) - [comp.x_mm, comp.y_mm]

@@ -511,3 +511,31 @@ def test_a_side_estimate_needs_the_lead_measured(lead_n, verdict):
     r = judge_joint(joint, comp, m, body, InspectConfig())
     assert r.verdict is verdict, r.reason
     assert ("lifted lead is not ruled out" in r.reason) == (verdict is Verdict.UNRELIABLE)
+
+
+def test_a_shift_the_placement_may_hide_is_never_a_silent_pass():
+    """A part read in place, but within 2σ of the board's placement at it of the side
+    overhang limit, is `unreliable` ("may be shifted"), not `ok`: test dense 10150's
+    SOIC-16, 70 % over its pads, read at 52 % less its slack on a board placed by a
+    compact cluster of chips (σ 72 µm at the SOIC). A well-placed board changes nothing,
+    and a shift beyond the limit as read stays `component_shifted`."""
+    from smdinspect.inspect._measure import ComponentMeasurement
+    from smdinspect.inspect._verdict import _misplaced, judge_component
+
+    u1 = load_board(DEMO).component("U1")
+    cfg = InspectConfig()
+    across = np.array([1.0, 0.0]) if abs(u1.joints[0].outward[1]) > 0.5 else np.array([0.0, 1.0])
+    limit = next(d for d in np.arange(0.0, 1.0, 0.005) if _misplaced(u1, d * across))
+
+    def judged(shift, sigma):
+        cov = None if sigma is None else np.eye(2) * sigma ** 2
+        m = ComponentMeasurement("U1", 0.9, 1.0, 1.5, tuple(shift * across), 0.0, 0.0, 40_000,
+                                 offset_cov_mm2=cov)
+        return judge_component(u1, m, cfg)
+
+    r = judged(0.8 * limit, 0.06)
+    assert r.verdict is Verdict.UNRELIABLE and "may be shifted" in r.reason, r.reason
+    assert judged(0.8 * limit, None).verdict is Verdict.OK
+    assert judged(0.8 * limit, 0.005).verdict is Verdict.OK
+    assert judged(0.1 * limit, 0.06).verdict is Verdict.OK
+    assert judged(1.1 * limit, 0.06).verdict is Verdict.COMPONENT_SHIFTED
