@@ -220,7 +220,7 @@ def judge_component(comp, m: ComponentMeasurement, config: InspectConfig) -> Com
                 sd = 1000.0 * math.sqrt(max(float(np.max(np.linalg.eigvalsh(
                     m.offset_cov_mm2))), 0.0))
                 verdict = Verdict.UNRELIABLE
-                reason = (f"may be shifted: in place as read, but the board's placement "
+                reason = (f"{MAY_BE_SHIFTED}: in place as read, but the board's placement "
                           f"is known here only to σ = {sd:.0f} µm, and {PLACEMENT_K:g}σ "
                           f"further out: {why}; not judged")
     return ComponentResult(
@@ -235,6 +235,8 @@ MAX_SIDE_OVERHANG = 0.5
 #: deviations of the board's placement at the part further out, stays within the limits
 #: (rule 4): else ``unreliable``, "may be shifted".
 PLACEMENT_K = 2.0
+#: How such a part's reason begins; its joints are then ``unreliable`` too.
+MAY_BE_SHIFTED = "may be shifted"
 
 
 def _misplaced(comp, offset: np.ndarray, slack=(0.0, 0.0), *, turn_deg: float = 0.0,
@@ -347,6 +349,10 @@ def judge_joint(joint, comp, m: JointMeasurement, comp_result: ComponentResult,
         possible = _possible_bridge(m, _bridge_limit(comp, config), config)
         if v == Verdict.OK and possible:
             v, reason = Verdict.UNRELIABLE, f"possible bridge to {possible}; not judged ({reason})"
+        elif v == Verdict.OK and comp_result.verdict is Verdict.UNRELIABLE \
+                and comp_result.reason.startswith(MAY_BE_SHIFTED):
+            # the pad may have lost its termination: what is read there is not a joint
+            v, reason = Verdict.UNRELIABLE, f"{comp.ref} {comp_result.reason}"
         elif v == Verdict.OK and m.gap_unread:
             v, reason = Verdict.UNRELIABLE, (
                 f"the gap to {m.gap_unread} is not measured (no path read, fewer than "

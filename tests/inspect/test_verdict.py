@@ -539,3 +539,12 @@ def test_a_shift_the_placement_may_hide_is_never_a_silent_pass():
     assert judged(0.8 * limit, 0.005).verdict is Verdict.OK
     assert judged(0.1 * limit, 0.06).verdict is Verdict.OK
     assert judged(1.1 * limit, 0.06).verdict is Verdict.COMPONENT_SHIFTED
+    # its joints are not passed either: the pad may have lost its lead
+    from smdinspect.inspect._verdict import judge_joint
+
+    j = u1.joints[0]
+    jm = JointMeasurement(j.id, (0.0, 0.0), 200, 0.9, max_mm=j.nominal_height_mm,
+                          max_method="foot")
+    assert judge_joint(j, u1, jm, judged(0.8 * limit, None), cfg).verdict is Verdict.OK
+    got = judge_joint(j, u1, jm, r, cfg)
+    assert got.verdict is Verdict.UNRELIABLE and "may be shifted" in got.reason, got.reason
