@@ -412,6 +412,15 @@ def fit_rigid2d(src: np.ndarray, dst: np.ndarray, w: np.ndarray | None = None) -
     return T
 
 
+def _rigid_jacobian(points: np.ndarray, c: np.ndarray) -> np.ndarray:
+    """(n, 2, 3): d(point)/d(tx, ty, θ) for a rotation θ about ``c`` followed by a
+    translation, at each of the (n, 2) world ``points``."""
+    J = np.zeros((len(points), 2, 3))
+    J[:, 0, 0] = J[:, 1, 1] = 1.0
+    J[:, 0, 2], J[:, 1, 2] = -(points[:, 1] - c[1]), points[:, 0] - c[0]
+    return J
+
+
 def fit_pairs(pairs: list[FeaturePair]) -> np.ndarray:
     """Rigid ``(3, 3)`` minimising Σ rᵢᵀ·Iᵢ·rᵢ over the pairs, rᵢ a pair's residual and
     Iᵢ its :meth:`~FeaturePair.information`: :func:`fit_rigid2d` when every pair is
@@ -426,10 +435,7 @@ def fit_pairs(pairs: list[FeaturePair]) -> np.ndarray:
     for _ in range(10):
         pred = apply2d(T, src)
         c = pred.mean(axis=0)
-        # d(pred)/d(tx, ty, θ) for a rotation θ about c followed by a translation
-        J = np.zeros((len(src), 2, 3))
-        J[:, 0, 0] = J[:, 1, 1] = 1.0
-        J[:, 0, 2], J[:, 1, 2] = -(pred[:, 1] - c[1]), pred[:, 0] - c[0]
+        J = _rigid_jacobian(pred, c)
         H = np.einsum("nia,nij,njb->ab", J, info, J)
         g = np.einsum("nia,nij,nj->a", J, info, dst - pred)
         tx, ty, th = np.linalg.lstsq(H, g, rcond=None)[0]
@@ -450,16 +456,14 @@ def placement_covariance(pairs: list[FeaturePair], T: np.ndarray):
     scale (the pairs' weights are relative). None without a degree of freedom or with a
     singular H."""
     n = len(pairs)
-    if n < 2 or 2 * n - 3 <= 0:
+    if 2 * n - 3 <= 0:
         return None
     src = np.array([fp.board_xy for fp in pairs], np.float64)
     dst = np.array([fp.world_xy for fp in pairs], np.float64)
     info = np.array([fp.information() for fp in pairs])
     pred = apply2d(T, src)
     c = pred.mean(axis=0)
-    J = np.zeros((n, 2, 3))
-    J[:, 0, 0] = J[:, 1, 1] = 1.0
-    J[:, 0, 2], J[:, 1, 2] = -(pred[:, 1] - c[1]), pred[:, 0] - c[0]
+    J = _rigid_jacobian(pred, c)
     H = np.einsum("nia,nij,njb->ab", J, info, J)
     r = dst - pred
     s2 = float(np.einsum("ni,nij,nj->", r, info, r)) / (2 * n - 3)
@@ -473,8 +477,8 @@ def placement_covariance(pairs: list[FeaturePair], T: np.ndarray):
 def position_covariance(cov, centre, T: np.ndarray, board_xy) -> np.ndarray:
     """(2, 2) covariance (mm², BOARD frame) of where the placement puts the board point
     ``board_xy``, from :func:`placement_covariance`'s ``(cov, centre)``."""
-    w = apply2d(T, np.asarray(board_xy, np.float64)[None])[0]
-    Jp = np.array([[1.0, 0.0, -(w[1] - centre[1])], [0.0, 1.0, w[0] - centre[0]]])
+    Jp = _rigid_jacobian(apply2d(T, np.asarray(board_xy, np.float64)[None]),
+                         np.asarray(centre, np.float64))[0]
     S = Jp @ np.asarray(cov, np.float64) @ Jp.T
     R = T[:2, :2]
     return R.T @ S @ R
