@@ -412,6 +412,18 @@ def fit_rigid2d(src: np.ndarray, dst: np.ndarray, w: np.ndarray | None = None) -
     return T
 
 
+def _normal_equations(src: np.ndarray, dst: np.ndarray, info: np.ndarray, T: np.ndarray):
+    """The weighted rigid fit's linearisation at ``T``: ``(c, H, g, r)``, the predicted
+    points' centroid c (the rotation's centre), the normal matrix H = Σ JᵢᵀIᵢJᵢ and
+    gradient g = Σ JᵢᵀIᵢrᵢ in (tx, ty, θ), and the residuals rᵢ = dst − T·src."""
+    pred = apply2d(T, src)
+    c = pred.mean(axis=0)
+    J = _rigid_jacobian(pred, c)
+    r = dst - pred
+    return (c, np.einsum("nia,nij,njb->ab", J, info, J),
+            np.einsum("nia,nij,nj->a", J, info, r), r)
+
+
 def _rigid_jacobian(points: np.ndarray, c: np.ndarray) -> np.ndarray:
     """(n, 2, 3): d(point)/d(tx, ty, θ) for a rotation θ about ``c`` followed by a
     translation, at each of the (n, 2) world ``points``."""
@@ -433,11 +445,7 @@ def fit_pairs(pairs: list[FeaturePair]) -> np.ndarray:
         return T
     info = np.array([fp.information() for fp in pairs])
     for _ in range(10):
-        pred = apply2d(T, src)
-        c = pred.mean(axis=0)
-        J = _rigid_jacobian(pred, c)
-        H = np.einsum("nia,nij,njb->ab", J, info, J)
-        g = np.einsum("nia,nij,nj->a", J, info, dst - pred)
+        c, H, g, _ = _normal_equations(src, dst, info, T)
         tx, ty, th = np.linalg.lstsq(H, g, rcond=None)[0]
         step = np.eye(3)
         step[:2, :2] = [[math.cos(th), -math.sin(th)], [math.sin(th), math.cos(th)]]
@@ -461,11 +469,7 @@ def placement_covariance(pairs: list[FeaturePair], T: np.ndarray):
     src = np.array([fp.board_xy for fp in pairs], np.float64)
     dst = np.array([fp.world_xy for fp in pairs], np.float64)
     info = np.array([fp.information() for fp in pairs])
-    pred = apply2d(T, src)
-    c = pred.mean(axis=0)
-    J = _rigid_jacobian(pred, c)
-    H = np.einsum("nia,nij,njb->ab", J, info, J)
-    r = dst - pred
+    c, H, _, r = _normal_equations(src, dst, info, T)
     s2 = float(np.einsum("ni,nij,nj->", r, info, r)) / (2 * n - 3)
     try:
         cov = s2 * np.linalg.inv(H)
